@@ -1,0 +1,101 @@
+"""``ns-invert-synth``: render a synthetic scene into a NeRF training set and SHIRT-format trajectories."""
+
+import json
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import tyro
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+from nerfinv_plugin.synth.datasets import (
+    TrainingSetSpec,
+    speedplus_like_camera,
+    write_json_atomic,
+    write_shirt_trajectories,
+    write_training_set,
+)
+from nerfinv_plugin.synth.scenes import SceneName
+from nerfinv_plugin.synth.trajectories import TrajectoryKind, TrajectorySpec
+
+
+@dataclass
+class TrajectoryOptions:
+    """Trajectories rendered into ``<out>/shirt`` in the SHIRT layout."""
+
+    kinds: tuple[TrajectoryKind, ...] = ("roe1", "roe2")
+    """Which trajectories to render: roe1 holds a constant range while the target spins about its z axis;
+    roe2 approaches slowly while the target tumbles about its z and x axes. Empty: none."""
+    num_frames: int = 20
+    """Frames per trajectory."""
+    frame_spacing_s: float = 5.0
+    """Seconds between frames (SHIRT uses 5 s)."""
+    range_m: float = 5.0
+    """roe1: constant camera-target range; roe2: range at the first frame (metres)."""
+    end_range_m: float = 4.0
+    """roe2: range at the last frame (metres)."""
+    spin_rate_deg_s: float = 0.8
+    """Spin rate about the body z axis (degrees per second; 0.8 at 5 s spacing is 4 degrees a frame)."""
+    second_rate_deg_s: float = 0.5
+    """roe2: tumble rate about the body x axis (degrees per second)."""
+    width: int = 240
+    """Image width in pixels (the thesis used 240x150 for SHIRT); the field of view is SPEED+'s."""
+    height: int = 150
+    """Image height in pixels."""
+    distortion: bool = False
+    """Pass the images through the SPEED+ lens distortion written in camera.json, as a real camera
+    would, so that a loader must undistort them. Without it, camera.json has zero distCoeffs."""
+
+
+@dataclass
+class Synth:
+    """Render a synthetic scene with Mitsuba 3 on the CPU: a NeRF training set (Blender and nerfstudio
+    transforms files) and camera trajectories in the SHIRT format. Deterministic for a seed."""
+
+    out: Path
+    """Output folder; the training set goes at its top, trajectories under ``shirt/``."""
+    scene: SceneName = "tango"
+    """tango: spacecraft after the public Tango geometry; toy: texture-rich asymmetric tabletop object."""
+    seed: int = 0
+    """Seeds textures, view placement, trajectory attitudes and render noise."""
+    spp: int = 64
+    """Samples per pixel for the path tracer."""
+    training: TrainingSetSpec = field(default_factory=TrainingSetSpec)
+    """The training set. Set train-views, val-views and test-views to 0 to render none."""
+    trajectory: TrajectoryOptions = field(default_factory=TrajectoryOptions)
+
+    def main(self) -> None:
+        console = Console()
+        t = self.trajectory
+        specs = [TrajectorySpec(kind, t.num_frames, t.frame_spacing_s, t.range_m, t.end_range_m,
+                                t.spin_rate_deg_s, t.second_rate_deg_s) for kind in t.kinds]
+        n_train = self.training.train_views + self.training.val_views + self.training.test_views
+        total = n_train + t.num_frames * len(specs)
+        columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+        with Progress(*columns, console=console) as progress:
+            task = progress.add_task(f"rendering {self.scene}", total=total)
+            step = lambda: progress.advance(task)  # noqa: E731
+            if n_train:
+                write_training_set(self.out, self.scene, self.training, self.seed, self.spp, step)
+            if specs:
+                camera = speedplus_like_camera(t.width, t.height)
+                write_shirt_trajectories(self.out, self.scene, specs, camera, t.distortion, self.seed,
+                                         self.spp, step)
+        write_json_atomic(self.out / "synth.json", json.loads(json.dumps(asdict(self), default=str)))
+        console.print(f"[green]wrote {self.out}[/green]")
+        if n_train:
+            console.print(f"train a model: ns-train nerfacto-tiny --data {self.out}")
+
+
+def entrypoint() -> None:
+    tyro.extras.set_accent_color("bright_yellow")
+    try:
+        tyro.cli(Synth).main()
+    except (OSError, ValueError) as err:
+        Console(stderr=True).print(f"[red]ns-invert-synth: {err}[/red]")
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    entrypoint()

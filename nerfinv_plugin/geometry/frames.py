@@ -1,0 +1,97 @@
+"""Conversions between SHIRT / SPEED+ pose labels and camera-to-world matrices.
+
+Labels give the target body in the camera frame: ``X_cam = R(q) X_body + r`` with ``q`` scalar-first
+(``q_vbs2tango_true``) and ``r`` the body origin in the camera frame in metres (``r_Vo2To_vbs_true``),
+camera axes OpenCV (x right, y down, z along the boresight). The world frame is the target body frame,
+so the camera-to-world pose is the inverse of the object-to-camera transform. nerfstudio wants OpenGL
+camera axes (x right, y up, z back), which differ from OpenCV by a flip of y and z.
+
+All functions are plain float64 numpy: this is the boundary where dataset numbers enter once.
+"""
+
+import numpy as np
+
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+"""Right-multiplying a camera-to-world pose by this swaps OpenCV and OpenGL camera axes (it is its own
+inverse)."""
+
+
+def quat_wxyz_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """Active rotation matrix of a scalar-first Hamilton quaternion; ``q`` need not be unit length."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rotmat_to_quat_wxyz(rot: np.ndarray) -> np.ndarray:
+    """Scalar-first unit quaternion of a rotation matrix, with ``w >= 0`` (Shepperd's method, stable at
+    every angle including pi)."""
+    m = np.asarray(rot, dtype=np.float64)
+    trace = np.trace(m)
+    diag = np.diag(m)
+    # Pick the largest of 4w^2, 4x^2, 4y^2, 4z^2 to divide by, so no branch loses precision.
+    candidates = np.array([trace, diag[0], diag[1], diag[2]])
+    k = int(np.argmax(candidates))
+    if k == 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif k == 1:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif k == 2:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def object_to_camera_to_c2w(rot: np.ndarray, r_cam: np.ndarray) -> np.ndarray:
+    """Camera-to-body 4x4 pose (OpenCV camera axes) of ``X_cam = rot X_body + r_cam``."""
+    rot = np.asarray(rot, dtype=np.float64)
+    c2w = np.eye(4)
+    c2w[:3, :3] = rot.T
+    c2w[:3, 3] = -rot.T @ np.asarray(r_cam, dtype=np.float64)
+    return c2w
+
+
+def label_to_c2w_opencv(q_wxyz: np.ndarray, r_cam: np.ndarray) -> np.ndarray:
+    """Camera-to-body 4x4 pose (OpenCV camera axes) from a SHIRT / SPEED+ label."""
+    return object_to_camera_to_c2w(quat_wxyz_to_rotmat(q_wxyz), r_cam)
+
+
+def c2w_opencv_to_label(c2w_cv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`label_to_c2w_opencv`: ``(q_vbs2tango wxyz, r_Vo2To_vbs metres)``."""
+    c2w_cv = np.asarray(c2w_cv, dtype=np.float64)
+    rot = c2w_cv[:3, :3].T
+    r_cam = -rot @ c2w_cv[:3, 3]
+    return rotmat_to_quat_wxyz(rot), r_cam
+
+
+def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
+    """Swap the camera axes of a camera-to-world pose between OpenCV and OpenGL (works both ways)."""
+    return np.asarray(c2w, dtype=np.float64) @ OPENCV_TO_OPENGL
+
+
+def look_at_c2w_opencv(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Camera-to-world pose (OpenCV axes) of a camera at ``eye`` whose boresight passes through
+    ``target``, with image-up as close to ``up`` as possible."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)  # right = forward x up; image y then points down, away from up
+    if np.linalg.norm(x) < 1e-9:
+        raise ValueError(f"up vector {up} is parallel to the viewing direction {z}")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye
+    return c2w

@@ -1,0 +1,150 @@
+"""Loading a trained nerfstudio model from its ``config.yml`` for rendering and inversion.
+
+nerfstudio's own ``eval_setup`` does not fit: it looks for checkpoints where the run was first written
+rather than beside ``config.yml``, exits the process when they are missing, cannot read its checkpoints
+under torch >= 2.6, re-runs the dataparser (so it needs the training images) and builds LPIPS, which
+downloads AlexNet. Here only the model is built: its scene box and sizes come from the checkpoint, so a
+run folder that was moved, copied to another machine or separated from its training data still loads.
+"""
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+import yaml
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.models.base_model import Model
+
+from nerfinv_plugin.model.fused_hash import use_fused_hash_encoding
+from nerfinv_plugin.model.nerfacto_tiny import lpips_disabled
+
+
+class ModelLoadError(Exception):
+    """A run folder that cannot be loaded; the message says what is wrong and how to fix it."""
+
+
+@dataclass
+class LoadedModel:
+    """A frozen model and the frame it was trained in."""
+
+    model: Model
+    config: TrainerConfig
+    checkpoint: Path
+    step: int
+    device: torch.device
+    dataparser_transform: np.ndarray
+    """[4, 4]: dataset world -> model world, applied before ``dataparser_scale``."""
+    dataparser_scale: float
+
+    def dataset_to_model(self, c2w: np.ndarray) -> np.ndarray:
+        """Camera-to-world poses [..., 4, 4] (OpenGL axes) from the dataset frame into the model frame:
+        transform, then scale the translation, as nerfstudio's dataparsers do."""
+        out = self.dataparser_transform @ np.asarray(c2w, dtype=np.float64)
+        out[..., :3, 3] *= self.dataparser_scale
+        return out
+
+    def model_to_dataset(self, c2w: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`dataset_to_model`."""
+        out = np.array(c2w, dtype=np.float64)
+        out[..., :3, 3] /= self.dataparser_scale
+        return np.linalg.inv(self.dataparser_transform) @ out
+
+
+Device = Literal["auto", "cpu", "cuda"]
+
+
+def resolve_device(device: Device) -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ModelLoadError("--device cuda was asked for but torch sees no CUDA device; use cpu or auto")
+    return torch.device(device)
+
+
+def read_config(config_path: Path) -> TrainerConfig:
+    config_path = Path(config_path)
+    if not config_path.is_file():
+        raise ModelLoadError(f"no config file at {config_path}: pass the config.yml that ns-train wrote in "
+                             "outputs/<experiment>/<method>/<timestamp>/")
+    try:
+        config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    except (yaml.YAMLError, UnicodeDecodeError, AttributeError, ModuleNotFoundError) as err:
+        raise ModelLoadError(f"{config_path} is not a readable nerfstudio config ({type(err).__name__}: "
+                             f"{str(err).splitlines()[0]}); is the plugin that trained it installed?") from err
+    if not isinstance(config, TrainerConfig):
+        raise ModelLoadError(f"{config_path} is not a nerfstudio config.yml (it holds a "
+                             f"{type(config).__name__}); pass the config.yml written by ns-train")
+    return config
+
+
+def find_checkpoint(config_path: Path, config: TrainerConfig, step: int | None) -> Path:
+    """The checkpoint beside ``config.yml`` (not where the run was first written): the latest, or ``step``."""
+    folder = Path(config_path).parent / config.relative_model_dir
+    found = sorted(folder.glob("step-*.ckpt"))
+    if step is not None:
+        found = [p for p in found if p.name == f"step-{step:09d}.ckpt"]
+    if not found:
+        which = f"step-{step:09d}.ckpt" if step is not None else "step-*.ckpt"
+        raise ModelLoadError(f"no checkpoint {which} in {folder}: copy the run's nerfstudio_models/ folder "
+                             "next to config.yml, or train until a checkpoint is saved")
+    return found[-1]
+
+
+def read_dataparser_transform(config_path: Path) -> tuple[np.ndarray, float]:
+    path = Path(config_path).parent / "dataparser_transforms.json"
+    if not path.is_file():
+        raise ModelLoadError(f"missing {path}: ns-train writes it beside config.yml; without it dataset "
+                             "poses cannot be mapped into the model frame")
+    data = json.loads(path.read_text())
+    transform = np.eye(4)
+    transform[:3, :4] = np.asarray(data["transform"], dtype=np.float64)
+    return transform, float(data["scale"])
+
+
+def _model_state(pipeline_state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    state = {}
+    for key, value in pipeline_state.items():
+        key = key.removeprefix("module.")
+        # LPIPS weights (stock nerfacto) are a metric, not part of the radiance field.
+        if key.startswith("_model.") and not key.startswith("_model.lpips."):
+            state[key.removeprefix("_model.")] = value
+    return state
+
+
+def _num_train_data(state: dict[str, torch.Tensor]) -> int:
+    """Training-image count, needed to size per-image embeddings; read off the tensors that depend on it."""
+    for key, value in state.items():
+        if key.endswith("embedding_appearance.embedding.weight") or key.endswith("pose_adjustment"):
+            return int(value.shape[0])
+    return 1
+
+
+def load_model(config_path: Path, step: int | None = None, device: Device = "auto") -> LoadedModel:
+    """Build the model a ``config.yml`` describes, load its checkpoint, and freeze it in eval mode."""
+    config_path = Path(config_path)
+    config = read_config(config_path)
+    checkpoint = find_checkpoint(config_path, config, step)
+    transform, scale = read_dataparser_transform(config_path)
+    torch_device = resolve_device(device)
+    try:
+        loaded = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        state = _model_state(loaded["pipeline"])
+    except (RuntimeError, KeyError, EOFError, OSError) as err:
+        raise ModelLoadError(f"cannot read checkpoint {checkpoint}: {err}") from err
+    aabb = state.get("field.aabb", torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    with lpips_disabled():
+        model = config.pipeline.model.setup(scene_box=SceneBox(aabb=aabb), num_train_data=_num_train_data(state),
+                                            metadata={}, device=torch_device, grad_scaler=None)
+    try:
+        model.load_state_dict(state, strict=True)
+    except RuntimeError as err:
+        raise ModelLoadError(f"checkpoint {checkpoint} does not match the model in {config_path}: "
+                             f"{str(err).splitlines()[0]}") from err
+    use_fused_hash_encoding(model)
+    model.update_to_step(int(loaded.get("step", 0)))
+    model.to(torch_device).eval().requires_grad_(False)
+    return LoadedModel(model, config, checkpoint, int(loaded.get("step", 0)), torch_device, transform, scale)

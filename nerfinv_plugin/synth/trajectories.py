@@ -1,0 +1,102 @@
+"""Camera poses: training views around an object, and SHIRT-like rendezvous trajectories.
+
+A trajectory is produced as object-to-camera transforms, the way SHIRT labels describe it (the servicer's
+camera sees the target's body frame), and converted to camera-to-body poses for rendering.
+"""
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from nerfinv_plugin.geometry.frames import look_at_c2w_opencv, quat_wxyz_to_rotmat
+
+
+def _axis_angle(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rodrigues' formula: rotation by ``angle_rad`` about the unit ``axis``."""
+    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * k + (1 - np.cos(angle_rad)) * (k @ k)
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """Uniformly distributed rotation (a normalised Gaussian quaternion is uniform on the 3-sphere)."""
+    return quat_wxyz_to_rotmat(rng.standard_normal(4))
+
+
+def orbit_views(num: int, range_m: float, range_jitter: float, centre: np.ndarray,
+                rng: np.random.Generator) -> np.ndarray:
+    """Camera-to-world poses (OpenCV axes) spread evenly over a sphere around ``centre``, each looking at
+    it with a random roll, at a range drawn from ``range_m * (1 +- range_jitter)``. Returns [num, 4, 4].
+
+    A Fibonacci lattice with a random global rotation covers the sphere without clumps, so every side of
+    the object is seen in training.
+    """
+    i = np.arange(num) + 0.5
+    polar = np.arccos(1 - 2 * i / num)
+    azimuth = np.pi * (1 + 5**0.5) * i
+    dirs = np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], 1)
+    dirs = dirs @ random_rotation(rng).T
+    poses = np.empty((num, 4, 4))
+    for k, d in enumerate(dirs):
+        distance = range_m * (1 + range_jitter * rng.uniform(-1, 1))
+        up = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.95 else np.array([0.0, 1.0, 0.0])
+        c2w = look_at_c2w_opencv(centre + distance * d, centre, up)
+        roll = _axis_angle(np.array([0.0, 0.0, 1.0]), rng.uniform(-np.pi, np.pi))
+        c2w[:3, :3] = c2w[:3, :3] @ roll  # roll about the boresight keeps the object centred
+        poses[k] = c2w
+    return poses
+
+
+TrajectoryKind = Literal["roe1", "roe2"]
+
+
+@dataclass(frozen=True)
+class TrajectorySpec:
+    """Relative motion of a SHIRT-like trajectory. Rates are per second; ``frame_spacing_s`` turns them
+    into per-frame steps (SHIRT images are 5 s apart)."""
+
+    kind: TrajectoryKind
+    num_frames: int = 20
+    frame_spacing_s: float = 5.0
+    range_m: float = 5.0
+    """roe1: the constant range held; roe2: the range at the first frame."""
+    end_range_m: float = 4.0
+    """roe2 only: the range at the last frame."""
+    spin_rate_deg_s: float = 0.8
+    """roe1: spin about the body z axis; roe2: tumble rate about the body z axis."""
+    second_rate_deg_s: float = 0.5
+    """roe2 only: tumble rate about the body x axis."""
+
+
+def trajectory_object_to_camera(spec: TrajectorySpec, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame rotation [F, 3, 3] and translation [F, 3] mapping body points into the camera frame
+    (OpenCV axes, metres): ``X_cam = R X_body + r``, exactly what a SHIRT label encodes.
+
+    The starting attitude is random (seeded). A principal-axis spin keeps its axis fixed in both frames,
+    so spinning is a right-multiplication by a rotation about a body axis.
+    """
+    if spec.num_frames < 1:
+        raise ValueError(f"a trajectory needs at least one frame, got num_frames={spec.num_frames}")
+    start = random_rotation(rng)
+    t = np.arange(spec.num_frames) * spec.frame_spacing_s
+    z_axis, x_axis = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    rotations = np.empty((spec.num_frames, 3, 3))
+    translations = np.zeros((spec.num_frames, 3))
+    if spec.kind == "roe1":
+        for k, tk in enumerate(t):
+            rotations[k] = start @ _axis_angle(z_axis, np.radians(spec.spin_rate_deg_s * tk))
+        translations[:, 2] = spec.range_m
+    elif spec.kind == "roe2":
+        progress = t / max(t[-1], 1e-12)
+        for k, tk in enumerate(t):
+            rotations[k] = (start @ _axis_angle(z_axis, np.radians(spec.spin_rate_deg_s * tk))
+                            @ _axis_angle(x_axis, np.radians(spec.second_rate_deg_s * tk)))
+        ranges = spec.range_m + (spec.end_range_m - spec.range_m) * progress
+        # The target drifts a little across the field of view as the approach closes in.
+        translations[:, 0] = 0.04 * ranges * np.sin(2 * np.pi * progress)
+        translations[:, 1] = 0.03 * ranges * np.cos(np.pi * progress)
+        translations[:, 2] = ranges
+    else:
+        raise ValueError(f"unknown trajectory kind {spec.kind!r}; choose roe1 or roe2")
+    return rotations, translations
