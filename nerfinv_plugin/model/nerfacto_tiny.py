@@ -6,7 +6,8 @@ machine without internet needs:
 - no LPIPS metric: building it downloads AlexNet weights, which fails offline (the metric reports NaN);
 - a data manager that caches images in-process instead of spawning loader worker processes;
 - the same hash-grid function computed by a faster torch forward (``fused_hash``);
-- smaller hash tables, MLPs and sample counts, the camera optimizer off so that the model frame stays
+- smaller hash tables, MLPs and sample counts, proposal sampling between near and far planes that
+  bound an object-centred scene, a black background, the camera optimizer off so that the model frame stays
   the ground-truth frame, and evaluation/viewer settings that never block or render full images often.
 
 nerfstudio imports this module for every ``ns-*`` command (entry point ``nerfstudio.method_configs``),
@@ -73,6 +74,15 @@ class NerfactoTinyModelConfig(NerfactoModelConfig):
     """nerfacto's options with CPU-sized defaults."""
 
     _target: type = field(default_factory=lambda: NerfactoTinyModel)
+    near_plane: float = 1.0
+    """Metres in the scenes ns-invert-synth writes (the object within 1 m of the origin, cameras 1.5 to
+    11 m away); scale both planes for other data."""
+    far_plane: float = 12.0
+    proposal_initial_sampler: Literal["piecewise", "uniform"] = "uniform"
+    """Uniform between the planes: the piecewise sampler spends half its samples within 1 unit of the
+    camera and leaves an object 5 m away with one or two samples, which it never learns."""
+    background_color: Literal["random", "last_sample", "black", "white"] = "black"
+    """Spacecraft are seen against black space (and so are the synthetic scenes)."""
     implementation: Literal["tcnn", "torch"] = "torch"
     """torch runs everywhere; a tcnn checkpoint cannot be loaded into a torch model, so keep it fixed."""
     num_levels: int = 8
@@ -98,7 +108,7 @@ def _adam(lr: float, max_steps: int) -> dict:
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=lr / 20, max_steps=max_steps)}
 
 
-MAX_ITERATIONS = 1500
+MAX_ITERATIONS = 1100
 
 nerfacto_tiny = MethodSpecification(
     config=TrainerConfig(
@@ -113,7 +123,7 @@ nerfacto_tiny = MethodSpecification(
         pipeline=VanillaPipelineConfig(
             datamanager=VanillaDataManagerConfig(
                 dataparser=BlenderDataParserConfig(),
-                train_num_rays_per_batch=1024,
+                train_num_rays_per_batch=512,
                 eval_num_rays_per_batch=1024,
             ),
             model=NerfactoTinyModelConfig(),

@@ -76,8 +76,9 @@ def _solar_cells(rng: np.random.Generator, cells: int = 6, px: int = 10) -> np.n
     return img
 
 
-def _color_blocks(rng: np.random.Generator, blocks: int = 8, px: int = 8) -> np.ndarray:
-    """Random saturated colour blocks: many corners for SIFT, no two views alike."""
+def _color_blocks(rng: np.random.Generator, blocks: int, px: int = 8) -> np.ndarray:
+    """Random colour blocks, large enough to stay several pixels wide in 100-pixel images (as Lego's
+    parts are): corners for SIFT that a small NeRF can still learn."""
     colors = rng.random((blocks, blocks, 3)) ** 1.5
     return np.kron(colors, np.ones((px, px, 1)))
 
@@ -123,12 +124,12 @@ def toy_scene(seed: int) -> dict:
         return {"type": "diffuse", "reflectance": _bitmap(_color_blocks(rng, blocks))}
 
     return {
-        "base": _box([-0.5, -0.4, -0.05], [0.5, 0.4, 0.0], textured(10)),
-        "tower": _box([0.2, 0.1, 0.0], [0.45, 0.35, 0.6], textured(6)),
-        "ball": {"type": "sphere", "center": [-0.25, 0.15, 0.15], "radius": 0.15, "bsdf": textured(8)},
+        "base": _box([-0.5, -0.4, -0.05], [0.5, 0.4, 0.0], textured(5)),
+        "tower": _box([0.2, 0.1, 0.0], [0.45, 0.35, 0.6], textured(3)),
+        "ball": {"type": "sphere", "center": [-0.25, 0.15, 0.15], "radius": 0.15, "bsdf": textured(4)},
         "log": {"type": "cylinder", "p0": [-0.4, -0.25, 0.08], "p1": [0.1, -0.25, 0.08], "radius": 0.08,
-                "bsdf": textured(6)},
-        "cube": _box([0.0, 0.0, 0.0], [0.12, 0.12, 0.12], textured(4)),
+                "bsdf": textured(3)},
+        "cube": _box([0.0, 0.0, 0.0], [0.12, 0.12, 0.12], textured(2)),
         **_lights(ambient=0.15),
     }
 

@@ -1,0 +1,35 @@
+"""Training ``nerfacto-tiny`` in-process, for the test fixture and the demo.
+
+``ns-train`` does the same from the shell; in-process training avoids a second interpreter start and
+lets a caller put its own limits (iterations, rays) on the stock configuration.
+"""
+
+import copy
+from pathlib import Path
+
+from nerfinv_plugin.model.nerfacto_tiny import nerfacto_tiny
+
+
+def train_nerfacto_tiny(data: Path, output_dir: Path, experiment_name: str, iterations: int,
+                        rays_per_batch: int = 512, timestamp: str = "run") -> Path:
+    """Train on a Blender-format dataset and return the ``config.yml`` of the run.
+
+    Call it under ``if __name__ == "__main__":`` in scripts: nerfstudio may start worker processes with
+    the ``spawn`` method, which re-imports the calling module (nerfacto-tiny itself starts none).
+    """
+    config = copy.deepcopy(nerfacto_tiny.config)
+    config.pipeline.datamanager.data = Path(data)
+    config.pipeline.datamanager.train_num_rays_per_batch = rays_per_batch
+    config.output_dir = Path(output_dir)
+    config.experiment_name = experiment_name
+    config.timestamp = timestamp
+    config.max_num_iterations = iterations
+    config.steps_per_save = iterations
+    for group in config.optimizers.values():
+        group["scheduler"].max_steps = iterations
+    config.logging.local_writer.enable = False
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    return config.get_base_dir() / "config.yml"

@@ -1,0 +1,65 @@
+"""Session fixtures: a small synthetic scene and a nerfacto-tiny trained on it on the CPU.
+
+Training takes minutes, so the run is cached under ``$NERFINV_TEST_CACHE`` (default
+``~/.cache/nerfinv/tests``) in a folder named by a hash of everything that determines it: the scene and
+training settings, the source of the code that renders and trains, and the versions of nerfstudio, torch
+and mitsuba. Change any of them and the fixture trains afresh; delete the folder to force it.
+"""
+
+import hashlib
+import json
+import os
+import shutil
+from importlib.metadata import version
+from pathlib import Path
+
+import pytest
+
+from nerfinv_plugin.synth.datasets import TrainingSetSpec, write_training_set
+
+PACKAGE = Path(__file__).resolve().parents[1] / "nerfinv_plugin"
+
+TOY_SCENE = {"scene": "toy", "seed": 0, "spp": 64,
+             "spec": TrainingSetSpec(train_views=60, val_views=4, test_views=6, width=80, height=50)}
+TOY_TRAINING = {"iterations": 800, "rays_per_batch": 512}
+
+
+def cache_root() -> Path:
+    return Path(os.environ.get("NERFINV_TEST_CACHE", Path.home() / ".cache" / "nerfinv" / "tests"))
+
+
+def cache_key(*settings: object) -> str:
+    digest = hashlib.sha256()
+    digest.update(json.dumps([repr(s) for s in settings]).encode())
+    for package in ("nerfstudio", "torch", "mitsuba"):
+        digest.update(version(package).encode())
+    for folder in ("synth", "model", "geometry"):
+        for source in sorted((PACKAGE / folder).glob("*.py")):
+            digest.update(source.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _noop() -> None:
+    pass
+
+
+def _build_toy_run(folder: Path) -> Path:
+    from nerfinv_plugin.model.training import train_nerfacto_tiny
+
+    data = folder / "data"
+    write_training_set(data, TOY_SCENE["scene"], TOY_SCENE["spec"], TOY_SCENE["seed"], TOY_SCENE["spp"], _noop)
+    return train_nerfacto_tiny(data, folder / "outputs", "toy", TOY_TRAINING["iterations"],
+                               TOY_TRAINING["rays_per_batch"], timestamp="fixture")
+
+
+@pytest.fixture(scope="session")
+def toy_run() -> tuple[Path, Path]:
+    """``(config.yml, data folder)`` of nerfacto-tiny trained on the toy scene, cached across sessions."""
+    folder = cache_root() / f"toy-{cache_key(TOY_SCENE, TOY_TRAINING)}"
+    config = folder / "outputs" / "toy" / "nerfacto-tiny" / "fixture" / "config.yml"
+    if not (folder / "complete").is_file():
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+        assert _build_toy_run(folder) == config
+        (folder / "complete").write_text("trained\n")
+    return config, folder / "data"

@@ -1,0 +1,78 @@
+"""nerfacto-tiny: trains offline without worker processes, reaches a PSNR floor, and its faster hash
+forward computes nerfstudio's function."""
+
+import multiprocessing.process
+import socket
+
+import numpy as np
+import pytest
+import torch
+from nerfstudio.field_components.encodings import HashEncoding
+from torchmetrics.image import lpip
+
+from nerfinv_plugin.model.evaluate import evaluate_split, psnr
+from nerfinv_plugin.model.fused_hash import fused_hash_forward
+from nerfinv_plugin.model.loading import load_model
+from nerfinv_plugin.model.nerfacto_tiny import LPIPSUnavailable, lpips_disabled
+from nerfinv_plugin.model.training import train_nerfacto_tiny
+from nerfinv_plugin.synth.datasets import TrainingSetSpec, write_training_set
+
+PSNR_FLOOR_DB = 24.0
+
+
+@pytest.mark.parametrize("levels,log2_size,max_res", [(8, 15, 256), (5, 14, 128), (16, 19, 2048)])
+def test_fused_hash_forward_matches_nerfstudio(levels, log2_size, max_res):
+    torch.manual_seed(0)
+    enc = HashEncoding(num_levels=levels, min_res=16, max_res=max_res, log2_hashmap_size=log2_size,
+                       implementation="torch")
+    x = torch.rand(2000, 3, requires_grad=True)
+    x.data[:10] = torch.tensor([0.0, 0.5, 1.0])  # lattice points, where floor == ceil
+    reference, ours = enc.pytorch_fwd(x), fused_hash_forward(enc, x)
+    torch.testing.assert_close(ours, reference, rtol=1e-5, atol=1e-7)
+    cotangent = torch.randn_like(reference)
+    grads_ref = torch.autograd.grad((reference * cotangent).sum(), [x, enc.hash_table])
+    grads_ours = torch.autograd.grad((ours * cotangent).sum(), [x, enc.hash_table])
+    for ref, got in zip(grads_ref, grads_ours):
+        torch.testing.assert_close(got, ref, rtol=1e-4, atol=1e-5)
+
+
+def test_lpips_stand_in_is_restored_after_the_context():
+    original = lpip.LearnedPerceptualImagePatchSimilarity
+    with pytest.raises(RuntimeError), lpips_disabled():
+        assert isinstance(lpip.LearnedPerceptualImagePatchSimilarity(normalize=True), LPIPSUnavailable)
+        raise RuntimeError("leave the context by an exception")
+    assert lpip.LearnedPerceptualImagePatchSimilarity is original
+
+
+def test_training_runs_with_network_unavailable_and_no_worker_processes(tmp_path, monkeypatch):
+    spec = TrainingSetSpec(train_views=4, val_views=1, test_views=1, width=40, height=25)
+    write_training_set(tmp_path / "data", "toy", spec, seed=0, spp=4, step=lambda: None)
+
+    def no_network(*args, **kwargs):
+        raise OSError("network disabled by the test")
+
+    def no_processes(self):
+        raise AssertionError(f"training started a process: {self}")
+
+    monkeypatch.setattr(socket.socket, "connect", no_network)
+    monkeypatch.setattr(socket.socket, "connect_ex", no_network)
+    monkeypatch.setattr(socket, "getaddrinfo", no_network)
+    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", no_processes)
+    with pytest.raises(OSError):  # the guard is live: a download attempt would fail
+        socket.create_connection(("pypi.org", 443), timeout=1)
+    config = train_nerfacto_tiny(tmp_path / "data", tmp_path / "out", "offline", iterations=10,
+                                 rays_per_batch=256)
+    assert [p.name for p in (config.parent / "nerfstudio_models").glob("*.ckpt")] == ["step-000000009.ckpt"]
+    loaded = load_model(config, device="cpu")
+    assert isinstance(loaded.model.lpips, LPIPSUnavailable)
+
+
+def test_tiny_model_reaches_psnr_floor_on_held_out_views(toy_run):
+    config, data = toy_run
+    loaded = load_model(config, device="cpu")
+    scores = evaluate_split(loaded, data, "test")
+    mean = float(np.mean([s.psnr for s in scores]))
+    # An empty model (black everywhere) scores well on mostly black images: the model must beat it.
+    black = float(np.mean([psnr(np.zeros_like(s.observed), s.observed) for s in scores]))
+    assert mean >= PSNR_FLOOR_DB, f"held-out PSNR {mean:.2f} dB < {PSNR_FLOOR_DB} dB"
+    assert mean >= black + 6.0, f"held-out PSNR {mean:.2f} dB barely beats an empty render ({black:.2f} dB)"
