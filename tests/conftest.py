@@ -21,7 +21,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "nerfinv_plugin"
 
 TOY_SCENE = {"scene": "toy", "seed": 0, "spp": 64,
              "spec": TrainingSetSpec(train_views=60, val_views=4, test_views=6, width=80, height=50)}
-TOY_TRAINING = {"iterations": 800, "rays_per_batch": 512}
+TOY_TRAINING = {"iterations": 1000, "rays_per_batch": 512}
 
 
 def cache_root() -> Path:

@@ -3,7 +3,6 @@ Blender/nerfstudio transforms, lens distortion, determinism and the CLI."""
 
 import json
 import subprocess
-from pathlib import Path
 
 import cv2
 import mitsuba as mi

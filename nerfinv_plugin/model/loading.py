@@ -8,7 +8,6 @@ run folder that was moved, copied to another machine or separated from its train
 """
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -16,43 +15,14 @@ import numpy as np
 import torch
 import yaml
 from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.base_model import Model
 
 from nerfinv_plugin.model.fused_hash import use_fused_hash_encoding
+from nerfinv_plugin.model.loaded import LoadedModel, ModelLoadError
 from nerfinv_plugin.model.nerfacto_tiny import lpips_disabled
-
-
-class ModelLoadError(Exception):
-    """A run folder that cannot be loaded; the message says what is wrong and how to fix it."""
-
-
-@dataclass
-class LoadedModel:
-    """A frozen model and the frame it was trained in."""
-
-    model: Model
-    config: TrainerConfig
-    checkpoint: Path
-    step: int
-    device: torch.device
-    dataparser_transform: np.ndarray
-    """[4, 4]: dataset world -> model world, applied before ``dataparser_scale``."""
-    dataparser_scale: float
-
-    def dataset_to_model(self, c2w: np.ndarray) -> np.ndarray:
-        """Camera-to-world poses [..., 4, 4] (OpenGL axes) from the dataset frame into the model frame:
-        transform, then scale the translation, as nerfstudio's dataparsers do."""
-        out = self.dataparser_transform @ np.asarray(c2w, dtype=np.float64)
-        out[..., :3, 3] *= self.dataparser_scale
-        return out
-
-    def model_to_dataset(self, c2w: np.ndarray) -> np.ndarray:
-        """Inverse of :meth:`dataset_to_model`."""
-        out = np.array(c2w, dtype=np.float64)
-        out[..., :3, 3] /= self.dataparser_scale
-        return np.linalg.inv(self.dataparser_transform) @ out
-
+from nerfinv_plugin.model.render import check_renders
 
 Device = Literal["auto", "cpu", "cuda"]
 
@@ -123,6 +93,22 @@ def _num_train_data(state: dict[str, torch.Tensor]) -> int:
     return 1
 
 
+def restore_step_state(model: Model, step: int) -> None:
+    """Put the model's step-dependent settings where training left them (nerfacto anneals its proposal
+    weights over the first iterations; splatfacto raises its spherical-harmonics degree). Training sets
+    them in callbacks run before each iteration, which nerfstudio's loader never runs: a short run then
+    renders differently after loading than it did while training."""
+    model.update_to_step(step)
+    attributes = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=None)
+    try:
+        for callback in model.get_training_callbacks(attributes):
+            if TrainingCallbackLocation.BEFORE_TRAIN_ITERATION in callback.where_to_run:
+                callback.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+    except AttributeError:
+        # splatfacto wires its callbacks to the optimizers; what its rendering reads is ``step``.
+        model.step = step
+
+
 def load_model(config_path: Path, step: int | None = None, device: Device = "auto") -> LoadedModel:
     """Build the model a ``config.yml`` describes, load its checkpoint, and freeze it in eval mode."""
     config_path = Path(config_path)
@@ -131,8 +117,8 @@ def load_model(config_path: Path, step: int | None = None, device: Device = "aut
     transform, scale = read_dataparser_transform(config_path)
     torch_device = resolve_device(device)
     try:
-        loaded = torch.load(checkpoint, map_location="cpu", weights_only=False)
-        state = _model_state(loaded["pipeline"])
+        saved = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        state = _model_state(saved["pipeline"])
     except (RuntimeError, KeyError, EOFError, OSError) as err:
         raise ModelLoadError(f"cannot read checkpoint {checkpoint}: {err}") from err
     aabb = state.get("field.aabb", torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
@@ -145,6 +131,8 @@ def load_model(config_path: Path, step: int | None = None, device: Device = "aut
         raise ModelLoadError(f"checkpoint {checkpoint} does not match the model in {config_path}: "
                              f"{str(err).splitlines()[0]}") from err
     use_fused_hash_encoding(model)
-    model.update_to_step(int(loaded.get("step", 0)))
     model.to(torch_device).eval().requires_grad_(False)
-    return LoadedModel(model, config, checkpoint, int(loaded.get("step", 0)), torch_device, transform, scale)
+    result = LoadedModel(model, config, checkpoint, int(saved.get("step", 0)), torch_device, transform, scale)
+    check_renders(result)  # first: for CUDA-only models, step callbacks already try to build CUDA kernels
+    restore_step_state(model, result.step)
+    return result

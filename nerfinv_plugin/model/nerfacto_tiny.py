@@ -7,8 +7,9 @@ machine without internet needs:
 - a data manager that caches images in-process instead of spawning loader worker processes;
 - the same hash-grid function computed by a faster torch forward (``fused_hash``);
 - smaller hash tables, MLPs and sample counts, proposal sampling between near and far planes that
-  bound an object-centred scene, a black background, the camera optimizer off so that the model frame stays
-  the ground-truth frame, and evaluation/viewer settings that never block or render full images often.
+  bound an object-centred scene, a random background behind RGBA training images, the camera optimizer
+  off so that the model frame stays the ground-truth frame, and evaluation/viewer settings that never
+  block or render full images often.
 
 nerfstudio imports this module for every ``ns-*`` command (entry point ``nerfstudio.method_configs``),
 so it must stay light and must never raise.
@@ -81,8 +82,10 @@ class NerfactoTinyModelConfig(NerfactoModelConfig):
     proposal_initial_sampler: Literal["piecewise", "uniform"] = "uniform"
     """Uniform between the planes: the piecewise sampler spends half its samples within 1 unit of the
     camera and leaves an object 5 m away with one or two samples, which it never learns."""
-    background_color: Literal["random", "last_sample", "black", "white"] = "black"
-    """Spacecraft are seen against black space (and so are the synthetic scenes)."""
+    background_color: Literal["random", "last_sample", "black", "white"] = "random"
+    """With RGBA training images, a random background during training teaches opacity (on a fixed black
+    one a dark object and a half-transparent one look alike, and colours wash out to grey); renders for
+    inversion are then over black, like space."""
     implementation: Literal["tcnn", "torch"] = "torch"
     """torch runs everywhere; a tcnn checkpoint cannot be loaded into a torch model, so keep it fixed."""
     num_levels: int = 8
@@ -122,7 +125,7 @@ nerfacto_tiny = MethodSpecification(
         machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
         pipeline=VanillaPipelineConfig(
             datamanager=VanillaDataManagerConfig(
-                dataparser=BlenderDataParserConfig(),
+                dataparser=BlenderDataParserConfig(alpha_color=None),  # keep RGBA for the random background
                 train_num_rays_per_batch=512,
                 eval_num_rays_per_batch=1024,
             ),

@@ -1,20 +1,230 @@
-"""Rendering a loaded model at camera poses given in the model frame (OpenGL camera axes)."""
+"""Rendering a loaded model at camera poses in the model frame (camera-to-world, OpenGL camera axes).
+
+The engine renders N candidate poses at the same P target pixels in every iteration. Here those N x P
+rays are built as one ray bundle (so the field runs on large batches, which is what makes a CPU or GPU
+efficient) and split into chunks whose size follows a memory budget. Gradients flow to the poses; the
+model's weights are frozen by the loader, so no memory or time goes into gradients for them.
+
+Two entry points:
+- :func:`render` returns outputs for all rays, differentiable, for callers that need them together;
+- :func:`render_chunks` yields them chunk by chunk, so that a caller can back-propagate each chunk's loss
+  before rendering the next and keep memory bounded by one chunk (the engine does this).
+"""
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
+import psutil
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.models.splatfacto import SplatfactoModel
+from torch import Tensor
 
-from nerfinv_plugin.model.loading import LoadedModel
+from nerfinv_plugin.model.loaded import LoadedModel, ModelLoadError
 
 
-def render_image(loaded: LoadedModel, c2w_model: np.ndarray, fx: float, fy: float, cx: float, cy: float,
-                 width: int, height: int) -> np.ndarray:
-    """Full image [H, W, 3] in [0, 1] at one pose [4, 4]; intrinsics in nerfstudio's convention (pixel
-    centres at +0.5, so a centred principal point is cx = W / 2). No gradients: for evaluation."""
-    camera = Cameras(
-        camera_to_worlds=torch.as_tensor(np.asarray(c2w_model)[None, :3, :4], dtype=torch.float32),
-        fx=float(fx), fy=float(fy), cx=float(cx), cy=float(cy), width=width, height=height,
-        camera_type=CameraType.PERSPECTIVE,
-    ).to(loaded.device)
-    outputs = loaded.model.get_outputs_for_camera(camera)
-    return outputs["rgb"].clamp(0, 1).cpu().numpy()
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in nerfstudio's convention: pixel (row i, col j) is sampled at (j + 0.5,
+    i + 0.5), so a centred principal point is cx = W / 2. OpenCV's cx is half a pixel less."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @classmethod
+    def from_opencv(cls, matrix: np.ndarray, width: int, height: int) -> "Intrinsics":
+        m = np.asarray(matrix, dtype=np.float64)
+        return cls(float(m[0, 0]), float(m[1, 1]), float(m[0, 2]) + 0.5, float(m[1, 2]) + 0.5, width, height)
+
+    def scaled(self, width: int, height: int) -> "Intrinsics":
+        """The same camera at another resolution (focal lengths and principal point scale with it)."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
+
+
+class RenderOutput(NamedTuple):
+    """Per-ray outputs, shaped [..., 3] / [..., 1]; ``None`` where the model has no such output."""
+
+    rgb: Tensor
+    accumulation: Tensor | None
+    depth: Tensor | None
+
+
+# Vanilla NeRF and mip-NeRF name their outputs per sampling level; the fine level is the answer.
+_OUTPUT_NAMES = {"rgb": ("rgb", "rgb_fine"), "accumulation": ("accumulation", "accumulation_fine"),
+                 "depth": ("expected_depth", "depth", "depth_fine")}
+
+
+def _pick(outputs: dict[str, Tensor], kind: str) -> Tensor | None:
+    for name in _OUTPUT_NAMES[kind]:
+        if name in outputs:
+            return outputs[name]
+    return None
+
+
+def as_3x4(c2w: Tensor) -> Tensor:
+    """Accept [N, 3, 4] or [N, 4, 4] camera-to-world poses; return the [N, 3, 4] part."""
+    if c2w.ndim != 3 or c2w.shape[-2:] not in ((3, 4), (4, 4)):
+        raise ValueError(f"camera-to-world poses must be [N, 3, 4] or [N, 4, 4], got {tuple(c2w.shape)}")
+    return c2w[:, :3, :4]
+
+
+def _check_pixels(pixels: Tensor, intrinsics: Intrinsics) -> None:
+    if pixels.ndim != 2 or pixels.shape[1] != 2:
+        raise ValueError(f"pixels must be [P, 2] (row, col), got {tuple(pixels.shape)}")
+    if len(pixels) and (pixels.min() < 0 or (pixels[:, 0] >= intrinsics.height).any()
+                        or (pixels[:, 1] >= intrinsics.width).any()):
+        raise ValueError(f"pixels fall outside the {intrinsics.width}x{intrinsics.height} image")
+
+
+def _cameras(c2w: Tensor, intrinsics: Intrinsics) -> Cameras:
+    return Cameras(camera_to_worlds=c2w, fx=float(intrinsics.fx), fy=float(intrinsics.fy), cx=float(intrinsics.cx),
+                   cy=float(intrinsics.cy), width=intrinsics.width, height=intrinsics.height,
+                   camera_type=CameraType.PERSPECTIVE)
+
+
+def ray_bundle(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor):
+    """One flat ray bundle for ``pixels`` [P, 2] (row, col) seen from every pose in ``c2w`` [N, 3|4, 4]:
+    ray ``n * P + p`` is pixel ``p`` of pose ``n``. Built by nerfstudio's own camera model, so every
+    model gets the rays it was trained with; differentiable with respect to ``c2w``."""
+    c2w = as_3x4(c2w)
+    _check_pixels(pixels, intrinsics)
+    n, p = c2w.shape[0], pixels.shape[0]
+    cameras = _cameras(c2w, intrinsics)
+    camera_indices = torch.arange(n, device=c2w.device).repeat_interleave(p)[:, None]
+    coords = (pixels.to(c2w.device, torch.float32) + 0.5).repeat(n, 1)
+    bundle = cameras.generate_rays(camera_indices=camera_indices, coords=coords)
+    # Models index per-image embeddings by camera; in eval mode they use the mean, so any valid index works.
+    bundle.camera_indices = torch.zeros_like(bundle.camera_indices)
+    return bundle
+
+
+def render_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
+                  chunk_rays: int | None = None) -> Iterator[tuple[slice, RenderOutput]]:
+    """Render ``ray_bundle(...)`` in chunks of at most ``chunk_rays`` rays (default: the model's memory
+    budget). Yields ``(slice into the N * P flat rays, outputs for that slice)``; every ray is rendered."""
+    if chunk_rays is None:
+        chunk_rays = loaded.chunk_rays or check_renders(loaded)
+    if chunk_rays < 1:
+        raise ValueError(f"chunk_rays must be at least 1, got {chunk_rays}")
+    if isinstance(loaded.model, SplatfactoModel):
+        yield from _splat_chunks(loaded, c2w, intrinsics, pixels)
+        return
+    bundle = ray_bundle(loaded, c2w.to(loaded.device), intrinsics, pixels)
+    total = len(bundle)
+    for start in range(0, total, chunk_rays):
+        part = slice(start, min(start + chunk_rays, total))
+        outputs = loaded.model(bundle[part])
+        rgb = _pick(outputs, "rgb")
+        if rgb is None:
+            raise RuntimeError(f"{type(loaded.model).__name__} returned no rgb output (keys: {sorted(outputs)})")
+        yield part, RenderOutput(rgb, _pick(outputs, "accumulation"), _pick(outputs, "depth"))
+
+
+def _splat_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics,
+                  pixels: Tensor) -> Iterator[tuple[slice, RenderOutput]]:
+    """Gaussian splatting renders whole images from a camera, not rays: rasterize each candidate's image
+    (differentiable in the pose through the view matrix) and take the chosen pixels. One candidate per
+    chunk."""
+    c2w = as_3x4(c2w).to(loaded.device)
+    _check_pixels(pixels, intrinsics)
+    rows, cols = pixels[:, 0].to(loaded.device), pixels[:, 1].to(loaded.device)
+    p = pixels.shape[0]
+    for n in range(c2w.shape[0]):
+        outputs = loaded.model.get_outputs(_cameras(c2w[n:n + 1], intrinsics))
+        picked = {name: value[rows, cols] for name, value in outputs.items()
+                  if isinstance(value, Tensor) and value.ndim == 3}
+        yield slice(n * p, (n + 1) * p), RenderOutput(picked["rgb"], picked.get("accumulation"), picked.get("depth"))
+
+
+def render(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
+           chunk_rays: int | None = None) -> RenderOutput:
+    """Colours (and accumulation and depth where the model has them) of ``pixels`` [P, 2] (row, col) from
+    every pose in ``c2w`` [N, 3|4, 4]: ``rgb`` is [N, P, 3]. Differentiable with respect to ``c2w``."""
+    n, p = as_3x4(c2w).shape[0], pixels.shape[0]
+    parts = [out for _, out in render_chunks(loaded, c2w, intrinsics, pixels, chunk_rays)]
+
+    def join(field: str, channels: int) -> Tensor | None:
+        values = [getattr(out, field) for out in parts]
+        if any(v is None for v in values):
+            return None
+        return torch.cat(values).reshape(n, p, channels)
+
+    return RenderOutput(join("rgb", 3), join("accumulation", 1), join("depth", 1))
+
+
+def render_image(loaded: LoadedModel, c2w_model: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """Full image [H, W, 3] in [0, 1] at one pose [4, 4], without gradients: for evaluation and plots."""
+    rows, cols = torch.meshgrid(torch.arange(intrinsics.height), torch.arange(intrinsics.width), indexing="ij")
+    pixels = torch.stack([rows.reshape(-1), cols.reshape(-1)], 1)
+    c2w = torch.as_tensor(np.asarray(c2w_model)[None], dtype=torch.float32)
+    with torch.no_grad():
+        rgb = render(loaded, c2w, intrinsics, pixels).rgb
+    return rgb.reshape(intrinsics.height, intrinsics.width, 3).clamp(0, 1).cpu().numpy()
+
+
+def bytes_per_ray(loaded: LoadedModel, probe_rays: int = 64) -> float:
+    """Memory one ray holds until its backward pass: the tensors autograd saves, counted while rendering
+    a probe batch whose poses require gradients. Device-agnostic, unlike allocator statistics."""
+    saved = 0
+
+    def pack(tensor: Tensor) -> Tensor:
+        nonlocal saved
+        saved += tensor.numel() * tensor.element_size()
+        return tensor
+
+    c2w = torch.eye(4, device=loaded.device)[None, :3].clone()
+    c2w[0, 2, 3] = 4.0  # any pose works: the count depends on sample counts, not on the scene
+    c2w.requires_grad_(True)
+    side = int(math.ceil(math.sqrt(probe_rays)))
+    intrinsics = Intrinsics(side, side, side / 2, side / 2, side, side)
+    rows, cols = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")
+    pixels = torch.stack([rows.reshape(-1), cols.reshape(-1)], 1)
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        out = render(loaded, c2w, intrinsics, pixels, chunk_rays=side * side).rgb
+    return (saved + out.numel() * out.element_size()) / (side * side)
+
+
+def memory_budget_bytes(device: torch.device) -> int:
+    """Memory a chunk may hold: half of what is free on a GPU, a quarter of available RAM on a CPU
+    (other processes and the rest of the engine need the remainder)."""
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return int(free * 0.5)
+    return int(psutil.virtual_memory().available * 0.25)
+
+
+MAX_CHUNK_RAYS = 1 << 16
+"""Larger chunks stop paying off and would make a single chunk's latency long."""
+
+
+CUDA_ONLY = {"NGPModel": "nerfacc's CUDA ray marching", "SplatfactoModel": "gsplat's CUDA rasterizer"}
+"""Models known to render only on CUDA: refused at once on other devices (probing them on a CPU first
+tries to compile CUDA extensions, for over a minute, before failing)."""
+
+
+def check_renders(loaded: LoadedModel) -> int:
+    """Render a probe batch with gradients, size ``loaded.chunk_rays`` from the memory budget, and return
+    it. A model that cannot render on its device (a CUDA-only kernel on a CPU, say) fails here with one
+    line naming the model and the device instead of deep inside the first iteration."""
+    name = type(loaded.model).__name__
+    for base in type(loaded.model).__mro__:
+        if base.__name__ in CUDA_ONLY and loaded.device.type != "cuda":
+            raise ModelLoadError(f"{name} ({loaded.config.method_name}) cannot render on {loaded.device}: it needs "
+                                 f"{CUDA_ONLY[base.__name__]}; use a CUDA machine or a nerfacto model")
+    try:
+        per_ray = bytes_per_ray(loaded)
+    except Exception as err:  # noqa: BLE001 - any failure here means the same thing to the user
+        first = (str(err).splitlines() or [""])[0][:200]
+        raise ModelLoadError(f"{name} ({loaded.config.method_name}) cannot render on {loaded.device}: "
+                             f"{type(err).__name__}: {first}") from err
+    # Twice the saved tensors: forward transients live alongside them for a moment.
+    loaded.chunk_rays = int(max(1, min(MAX_CHUNK_RAYS, memory_budget_bytes(loaded.device) // (2 * per_ray))))
+    return loaded.chunk_rays

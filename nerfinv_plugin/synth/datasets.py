@@ -1,6 +1,7 @@
 """Writing rendered scenes to disk in the published formats.
 
-- Training sets as Blender ``transforms_{train,val,test}.json`` (read by ``ns-train ... blender-data``) and
+- Training sets as RGBA PNGs (straight alpha, as Blender's synthetic scenes) with Blender
+  ``transforms_{train,val,test}.json`` (read by ``ns-train ... blender-data``) and
   the same views as a nerfstudio ``transforms.json`` with per-split file lists (``nerfstudio-data``).
 - Trajectories as SHIRT: ``shirt/camera.json``, ``shirt/roeN/roeN.json`` (labels) and
   ``shirt/roeN/synthetic/images/img000001.jpg``.
@@ -17,7 +18,13 @@ import mitsuba as mi
 import numpy as np
 
 from nerfinv_plugin.geometry.frames import object_to_camera_to_c2w, opencv_to_opengl, rotmat_to_quat_wxyz
-from nerfinv_plugin.synth.render import PinholeCamera, distort_image, distortion_padding, render_view
+from nerfinv_plugin.synth.render import (
+    PinholeCamera,
+    distort_image,
+    distortion_padding,
+    render_view,
+    render_view_rgba,
+)
 from nerfinv_plugin.synth.scenes import SCENE_CENTRES, SceneName, build_scene
 from nerfinv_plugin.synth.trajectories import TrajectorySpec, orbit_views, trajectory_object_to_camera
 
@@ -40,10 +47,12 @@ def write_json_atomic(path: Path, data: object) -> None:
     os.replace(tmp, path)
 
 
-def write_image(path: Path, rgb: np.ndarray) -> None:
+def write_image(path: Path, image: np.ndarray) -> None:
+    """Write an RGB or RGBA ``uint8`` image (PNG keeps alpha; JPEG at quality 95)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     params = [cv2.IMWRITE_JPEG_QUALITY, 95] if path.suffix == ".jpg" else []
-    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params):
+    code = cv2.COLOR_RGBA2BGRA if image.shape[-1] == 4 else cv2.COLOR_RGB2BGR
+    if not cv2.imwrite(str(path), cv2.cvtColor(image, code), params):
         raise OSError(f"could not write image {path}")
 
 
@@ -104,8 +113,8 @@ def write_training_set(out: Path, scene_name: SceneName, spec: TrainingSetSpec, 
         frames = []
         for i in range(count):
             c2w_cv = poses[start + i]
-            rgb, _ = render_view(scene, c2w_cv, camera, spp, seed=seed * 100_003 + start + i)
-            write_image(out / split / f"r_{i:03d}.png", rgb)
+            rgba = render_view_rgba(scene, c2w_cv, camera, spp, seed=seed * 100_003 + start + i)
+            write_image(out / split / f"r_{i:03d}.png", rgba)
             c2w_gl = opencv_to_opengl(c2w_cv).tolist()
             frames.append({"file_path": f"./{split}/r_{i:03d}", "transform_matrix": c2w_gl})
             nerfstudio_frames.append({"file_path": f"{split}/r_{i:03d}.png", "transform_matrix": c2w_gl})

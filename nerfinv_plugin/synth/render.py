@@ -67,11 +67,24 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
 
 def render_view(scene: mi.Scene, c2w_cv: np.ndarray, camera: PinholeCamera, spp: int,
                 seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Render one view. Returns an sRGB ``uint8`` image [H, W, 3] and the object's coverage in [0, 1]
-    [H, W] (the alpha channel: 0 on the background)."""
+    """Render one view. Returns the sRGB ``uint8`` image over the black background [H, W, 3] and the
+    object's coverage in [0, 1] [H, W] (alpha: 0 on the background)."""
     image = np.array(mi.render(scene, sensor=_sensor(c2w_cv, camera, spp), seed=seed, spp=spp))
+    # The film accumulates radiance only where rays hit something: colours are premultiplied by coverage.
     rgb = np.round(linear_to_srgb(image[..., :3]) * 255).astype(np.uint8)
     return rgb, np.clip(image[..., 3], 0.0, 1.0)
+
+
+def render_view_rgba(scene: mi.Scene, c2w_cv: np.ndarray, camera: PinholeCamera, spp: int,
+                     seed: int) -> np.ndarray:
+    """Render one view as an sRGB ``uint8`` RGBA image with straight (not premultiplied) colour, the
+    convention of PNG and of Blender's training sets: a NeRF can then learn opacity from the alpha
+    channel instead of confusing a dark object with a transparent one on a black background."""
+    image = np.array(mi.render(scene, sensor=_sensor(c2w_cv, camera, spp), seed=seed, spp=spp))
+    alpha = np.clip(image[..., 3:], 0.0, 1.0)
+    straight = np.where(alpha > 1e-6, image[..., :3] / np.maximum(alpha, 1e-6), 0.0)
+    rgba = np.concatenate([linear_to_srgb(straight), alpha], -1)
+    return np.round(rgba * 255).astype(np.uint8)
 
 
 def distortion_padding(camera: PinholeCamera, dist_coeffs: np.ndarray) -> tuple[int, int]:

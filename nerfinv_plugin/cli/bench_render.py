@@ -1,0 +1,144 @@
+"""``ns-invert-bench-render``: forward+backward throughput of our batched renderer against the thesis'."""
+
+import statistics
+import sys
+import time
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+import torch
+import tyro
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from rich.console import Console
+
+from nerfinv_plugin.geometry.frames import look_at_c2w_opencv, opencv_to_opengl
+from nerfinv_plugin.model.gradients import keep_gradients
+from nerfinv_plugin.model.loaded import LoadedModel
+from nerfinv_plugin.model.loading import Device, ModelLoadError, load_model
+from nerfinv_plugin.model.render import Intrinsics, render_chunks
+from nerfinv_plugin.synth.datasets import speedplus_like_camera
+
+
+def thesis_step(loaded: LoadedModel, c2w: torch.Tensor, intrinsics: Intrinsics, pixels: torch.Tensor,
+                target: torch.Tensor) -> torch.Tensor:
+    """One iteration as the thesis' implementation does it: a ray bundle per candidate, rendered through
+    the patched ``get_outputs_for_camera_ray_bundle`` with the model's weights not frozen, the candidates'
+    losses stacked and back-propagated once. Returns the rendered colours [N, P, 3]."""
+    model = loaded.model
+    rgbs, losses = [], []
+    with keep_gradients(model):
+        for n in range(c2w.shape[0]):
+            camera = Cameras(camera_to_worlds=c2w[n:n + 1], fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx,
+                             cy=intrinsics.cy, width=intrinsics.width, height=intrinsics.height,
+                             camera_type=CameraType.PERSPECTIVE).to(loaded.device)
+            bundle = camera.generate_rays(camera_indices=0, coords=pixels.float() + 0.5)
+            rgb = model.get_outputs_for_camera_ray_bundle(bundle.reshape((pixels.shape[0], 1)))["rgb"][:, 0]
+            rgbs.append(rgb)
+            losses.append(((rgb - target) ** 2).mean())
+    torch.stack(losses).sum().backward()
+    return torch.stack(rgbs)
+
+
+def batched_step(loaded: LoadedModel, c2w: torch.Tensor, intrinsics: Intrinsics, pixels: torch.Tensor,
+                 target: torch.Tensor) -> torch.Tensor:
+    """One iteration of our engine: all candidates' rays in chunked batches, frozen weights, each chunk's
+    loss back-propagated before the next chunk is rendered."""
+    rgbs = []
+    count = pixels.shape[0]
+    flat_target = target.repeat(c2w.shape[0], 1)
+    for part, out in render_chunks(loaded, c2w, intrinsics, pixels):
+        (((out.rgb - flat_target[part]) ** 2).sum() / count).backward()
+        rgbs.append(out.rgb.detach())
+    return torch.cat(rgbs).reshape(c2w.shape[0], count, 3)
+
+
+@dataclass
+class RenderBenchmark:
+    """Time one inversion iteration (render N candidates at P pixels, loss, backward) done the thesis' way
+    and our way, alternately in one process on the same rays, and print rays per second and the ratio."""
+
+    load_config: Path
+    """config.yml of a trained run."""
+    candidates: int = 15
+    """Candidate poses rendered per iteration (the thesis used 15)."""
+    pixels: int = 256
+    """Pixels sampled per candidate."""
+    repeats: int = 5
+    """Timed iterations of each way (after one warm-up each); the median is reported."""
+    range_m: float = 5.0
+    """Distance of the candidate cameras from the dataset origin, in dataset units (metres)."""
+    width: int = 240
+    """Image width in pixels; the field of view is SPEED+'s."""
+    height: int = 150
+    """Image height in pixels."""
+    device: Device = "auto"
+    """Where to render."""
+    seed: int = 0
+    """Seeds candidate poses and pixels."""
+
+    def main(self) -> None:
+        console = Console()
+        loaded = load_model(self.load_config, device=self.device)
+        rng = np.random.default_rng(self.seed)
+        camera = speedplus_like_camera(self.width, self.height)
+        intrinsics = Intrinsics.from_opencv(camera.matrix, self.width, self.height)
+        poses = []
+        for _ in range(self.candidates):
+            direction = rng.normal(size=3)
+            eye = self.range_m * direction / np.linalg.norm(direction)
+            poses.append(loaded.dataset_to_model(opencv_to_opengl(look_at_c2w_opencv(eye, np.zeros(3), [0, 0, 1]))))
+        c2w = torch.as_tensor(np.stack(poses)[:, :3], dtype=torch.float32, device=loaded.device)
+        flat = rng.choice(self.width * self.height, size=self.pixels, replace=False)
+        pixels = torch.as_tensor(np.stack([flat // self.width, flat % self.width], 1), device=loaded.device)
+        target = torch.zeros(self.pixels, 3, device=loaded.device)
+        rays = self.candidates * self.pixels
+
+        def timed(step, frozen: bool) -> tuple[float, torch.Tensor]:
+            leaf = c2w.clone().requires_grad_(True)
+            loaded.model.requires_grad_(not frozen)
+            try:
+                sync()
+                start = time.perf_counter()
+                rgb = step(loaded, leaf, intrinsics, pixels, target)
+                sync()
+                return time.perf_counter() - start, rgb
+            finally:
+                loaded.model.requires_grad_(False)
+                loaded.model.zero_grad(set_to_none=True)
+
+        def sync() -> None:
+            if loaded.device.type == "cuda":
+                torch.cuda.synchronize(loaded.device)
+
+        _, rgb_thesis = timed(thesis_step, frozen=False)
+        _, rgb_ours = timed(batched_step, frozen=True)
+        thesis_times, our_times = [], []
+        for _ in range(self.repeats):
+            thesis_times.append(timed(thesis_step, frozen=False)[0])
+            our_times.append(timed(batched_step, frozen=True)[0])
+        t_thesis, t_ours = statistics.median(thesis_times), statistics.median(our_times)
+        diff = float((rgb_thesis - rgb_ours).abs().max())
+        console.print(f"model {loaded.config.method_name} step {loaded.step}, device {loaded.device}, "
+                      f"{self.candidates} candidates x {self.pixels} pixels = {rays} rays, "
+                      f"chunk {loaded.chunk_rays} rays; max colour difference between the ways {diff:.2e}")
+        console.print("| way | s / iteration (median) | rays / s (fwd+bwd) |\n|---|---|---|")
+        console.print(f"| thesis: per-candidate get_outputs_for_camera_ray_bundle, weights trainable | "
+                      f"{t_thesis:.3f} | {rays / t_thesis:,.0f} |")
+        console.print(f"| nerfinv: one batched bundle, chunked, frozen weights | {t_ours:.3f} | {rays / t_ours:,.0f} |")
+        console.print(f"ratio (thesis time / ours): [bold]{t_thesis / t_ours:.2f}x[/bold]  "
+                      f"({datetime.now().isoformat(timespec='minutes')})")
+
+
+def entrypoint() -> None:
+    tyro.extras.set_accent_color("bright_yellow")
+    try:
+        tyro.cli(RenderBenchmark).main()
+    except ModelLoadError as err:
+        Console(stderr=True).print(f"[red]ns-invert-bench-render: {err}[/red]")
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    entrypoint()

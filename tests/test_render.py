@@ -1,0 +1,146 @@
+"""Differentiable batched rendering of a loaded model: gradients, batching, chunking, the no-grad patch."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from nerfinv_plugin.model.evaluate import psnr, read_rgb_over_black
+from nerfinv_plugin.model.gradients import keep_gradients
+from nerfinv_plugin.model.loading import load_model
+from nerfinv_plugin.model.render import Intrinsics, ray_bundle, render, render_image
+
+
+@pytest.fixture(scope="module")
+def toy(toy_run):
+    config, data = toy_run
+    return load_model(config, device="cpu"), data
+
+
+def _view(data, split: str, index: int) -> tuple[np.ndarray, Intrinsics, str]:
+    meta = json.loads((data / f"transforms_{split}.json").read_text())
+    frame = meta["frames"][index]
+    width, height = 80, 50
+    focal = 0.5 * width / np.tan(0.5 * meta["camera_angle_x"])
+    return np.asarray(frame["transform_matrix"]), Intrinsics(focal, focal, width / 2, height / 2, width, height), \
+        frame["file_path"]
+
+
+def _object_pixels(loaded, c2w, intrinsics, count: int, seed: int = 0) -> torch.Tensor:
+    """Pixels on the object (where the render is not background), so gradients are informative."""
+    image = render_image(loaded, c2w, intrinsics)
+    rows, cols = np.nonzero(image.max(-1) > 0.1)
+    pick = np.random.default_rng(seed).choice(len(rows), size=min(count, len(rows)), replace=False)
+    return torch.as_tensor(np.stack([rows[pick], cols[pick]], 1))
+
+
+def _perturbed(c2w0: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """c2w = [R(w) | t] @ c2w0 with delta = [t, w]: a left (world-frame) update, written independently of
+    the engine's SE(3) code."""
+    w = delta[3:]
+    theta = torch.sqrt((w * w).sum() + 1e-24)
+    k = torch.zeros(3, 3, dtype=delta.dtype)
+    k[0, 1], k[0, 2], k[1, 0], k[1, 2], k[2, 0], k[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
+    rot = torch.eye(3, dtype=delta.dtype) + torch.sin(theta) / theta * k + (1 - torch.cos(theta)) / theta**2 * k @ k
+    top = torch.cat([rot, delta[:3, None]], 1)
+    update = torch.cat([top, torch.tensor([[0.0, 0, 0, 1]], dtype=delta.dtype)], 0)
+    return (update @ c2w0)[None]
+
+
+def test_pose_gradient_matches_finite_differences(toy):
+    loaded, data = toy
+    c2w_data, intrinsics, _ = _view(data, "test", 0)
+    c2w0 = torch.as_tensor(loaded.dataset_to_model(c2w_data), dtype=torch.float32)
+    pixels = _object_pixels(loaded, c2w0.numpy(), intrinsics, 300)
+    offset = torch.tensor([0.03, -0.02, 0.02, 0.02, -0.015, 0.01])  # about 1.5 degrees and 4 cm away
+    with torch.no_grad():
+        target = render(loaded, _perturbed(c2w0, offset), intrinsics, pixels).rgb
+
+    def loss(delta: torch.Tensor) -> torch.Tensor:
+        return ((render(loaded, _perturbed(c2w0, delta), intrinsics, pixels).rgb - target) ** 2).mean()
+
+    delta = torch.zeros(6, requires_grad=True)
+    loss(delta).backward()
+    grad = delta.grad.clone()
+    assert grad.abs().max() > 0
+    # Directional derivatives along the gradient and along each axis with a large component.
+    directions = [grad / grad.norm()] + [torch.eye(6)[i] for i in range(6) if grad[i].abs() > 0.2 * grad.abs().max()]
+    h = 2e-3
+    for d in directions:
+        with torch.no_grad():
+            numeric = (loss(h * d) - loss(-h * d)) / (2 * h)
+        analytic = (grad * d).sum()
+        assert abs(numeric - analytic) <= 0.05 * abs(analytic), (d, float(numeric), float(analytic))
+
+
+def test_rendering_a_training_pose_reproduces_the_image(toy):
+    loaded, data = toy
+    c2w_data, intrinsics, file_path = _view(data, "train", 0)
+    observed = read_rgb_over_black(data / (file_path[2:] + ".png"))
+    rendered = render_image(loaded, loaded.dataset_to_model(c2w_data), intrinsics)
+    black = psnr(np.zeros_like(observed), observed)
+    assert psnr(rendered, observed) > max(24.0, black + 6.0)
+
+
+def test_batch_of_candidates_equals_single_renders_and_chunking_changes_nothing(toy):
+    loaded, data = toy
+    c2w_data, intrinsics, _ = _view(data, "test", 1)
+    c2w0 = torch.as_tensor(loaded.dataset_to_model(c2w_data), dtype=torch.float32)
+    rng = np.random.default_rng(0)
+    poses = torch.stack([_perturbed(c2w0, torch.as_tensor(rng.normal(0, 0.03, 6), dtype=torch.float32))[0]
+                         for _ in range(4)])
+    pixels = _object_pixels(loaded, c2w0.numpy(), intrinsics, 120)
+    poses.requires_grad_(True)
+    batched = render(loaded, poses, intrinsics, pixels)
+    (batched.rgb.square().sum() + batched.depth.sum()).backward()
+    grad_batched = poses.grad.clone()
+    poses.grad = None
+    chunked = render(loaded, poses, intrinsics, pixels, chunk_rays=37)  # chunks cut across candidates
+    (chunked.rgb.square().sum() + chunked.depth.sum()).backward()
+    torch.testing.assert_close(chunked.rgb, batched.rgb, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(chunked.accumulation, batched.accumulation, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(poses.grad, grad_batched, rtol=1e-4, atol=1e-6)
+    for i in range(4):
+        single = render(loaded, poses[i:i + 1].detach(), intrinsics, pixels)
+        torch.testing.assert_close(single.rgb[0], batched.rgb[i].detach(), rtol=1e-5, atol=1e-6)
+    assert batched.rgb.shape == (4, 120, 3) and batched.depth.shape == (4, 120, 1)
+
+
+def test_rays_and_outputs_follow_the_pose_convention(toy):
+    """The ray of the principal point leaves the camera centre along -z of the pose (OpenGL axes)."""
+    loaded, _ = toy
+    rot = torch.as_tensor(Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), dtype=torch.float32)
+    c2w = torch.eye(4)[None].clone()
+    c2w[0, :3, :3], c2w[0, :3, 3] = rot, torch.tensor([0.5, -1.0, 4.0])
+    intrinsics = Intrinsics(60.0, 60.0, 40.0, 25.0, 80, 50)
+    bundle = ray_bundle(loaded, c2w, intrinsics, torch.tensor([[24, 39], [0, 0]]))
+    torch.testing.assert_close(bundle.origins[0], c2w[0, :3, 3])
+    centre_dir = rot @ torch.tensor([0.5 / 60, 0.5 / 60, -1.0])  # pixel centre (39.5, 24.5) vs cx, cy
+    torch.testing.assert_close(bundle.directions[0], centre_dir / centre_dir.norm(), rtol=1e-5, atol=1e-6)
+
+
+def test_keep_gradients_patches_one_model_and_is_undone(toy):
+    loaded, _ = toy
+    model = loaded.model
+    c2w = torch.eye(4)[None, :3].clone()
+    c2w[0, 2, 3] = 4.0
+    c2w.requires_grad_(True)
+    intrinsics = Intrinsics(10.0, 10.0, 2.0, 2.0, 4, 4)
+    pixels = torch.stack(torch.meshgrid(torch.arange(4), torch.arange(4), indexing="ij"), -1).reshape(-1, 2)
+
+    def outputs():
+        bundle = ray_bundle(loaded, c2w, intrinsics, pixels).reshape((4, 4))
+        return model.get_outputs_for_camera_ray_bundle(bundle)["rgb"]
+
+    assert not outputs().requires_grad  # nerfstudio's no_grad
+    with keep_gradients(model):
+        rgb = outputs()
+        assert rgb.requires_grad
+        rgb.sum().backward()
+        assert c2w.grad is not None and c2w.grad.abs().sum() > 0
+    assert not outputs().requires_grad
+    with pytest.raises(KeyError), keep_gradients(model):
+        raise KeyError("leave by an exception")
+    assert "get_outputs_for_camera_ray_bundle" not in vars(model) and not outputs().requires_grad
