@@ -24,6 +24,11 @@ TOY_SCENE = {"scene": "toy", "seed": 0, "spp": 64,
 TOY_TRAINING = {"iterations": 1000, "rays_per_batch": 512}
 
 
+TRAINING_SOURCES = ("synth/scenes.py", "synth/render.py", "synth/trajectories.py", "synth/datasets.py",
+                    "geometry/frames.py", "model/nerfacto_tiny.py", "model/fused_hash.py", "model/training.py")
+"""The code whose behaviour determines the trained fixture (rendering the data and training on it)."""
+
+
 def cache_root() -> Path:
     return Path(os.environ.get("NERFINV_TEST_CACHE", Path.home() / ".cache" / "nerfinv" / "tests"))
 
@@ -33,9 +38,8 @@ def cache_key(*settings: object) -> str:
     digest.update(json.dumps([repr(s) for s in settings]).encode())
     for package in ("nerfstudio", "torch", "mitsuba"):
         digest.update(version(package).encode())
-    for folder in ("synth", "model", "geometry"):
-        for source in sorted((PACKAGE / folder).glob("*.py")):
-            digest.update(source.read_bytes())
+    for source in TRAINING_SOURCES:
+        digest.update((PACKAGE / source).read_bytes())
     return digest.hexdigest()[:16]
 
 

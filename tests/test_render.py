@@ -117,7 +117,9 @@ def test_rays_and_outputs_follow_the_pose_convention(toy):
     intrinsics = Intrinsics(60.0, 60.0, 40.0, 25.0, 80, 50)
     bundle = ray_bundle(loaded, c2w, intrinsics, torch.tensor([[24, 39], [0, 0]]))
     torch.testing.assert_close(bundle.origins[0], c2w[0, :3, 3])
-    centre_dir = rot @ torch.tensor([0.5 / 60, 0.5 / 60, -1.0])  # pixel centre (39.5, 24.5) vs cx, cy
+    # Pixel (row 24, col 39) is sampled at (39.5, 24.5): half a pixel left of and above (40, 25); image
+    # up is +y in OpenGL camera axes, and the camera looks along -z.
+    centre_dir = rot @ torch.tensor([-0.5 / 60, 0.5 / 60, -1.0])
     torch.testing.assert_close(bundle.directions[0], centre_dir / centre_dir.norm(), rtol=1e-5, atol=1e-6)
 
 

@@ -10,6 +10,9 @@ All functions are plain float64 numpy: this is the boundary where dataset number
 """
 
 import numpy as np
+import torch
+
+from nerfinv_plugin.geometry.se3 import rotmat_to_quat
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplying a camera-to-world pose by this swaps OpenCV and OpenGL camera axes (it is its own
@@ -29,29 +32,8 @@ def quat_wxyz_to_rotmat(q: np.ndarray) -> np.ndarray:
 
 
 def rotmat_to_quat_wxyz(rot: np.ndarray) -> np.ndarray:
-    """Scalar-first unit quaternion of a rotation matrix, with ``w >= 0`` (Shepperd's method, stable at
-    every angle including pi)."""
-    m = np.asarray(rot, dtype=np.float64)
-    trace = np.trace(m)
-    diag = np.diag(m)
-    # Pick the largest of 4w^2, 4x^2, 4y^2, 4z^2 to divide by, so no branch loses precision.
-    candidates = np.array([trace, diag[0], diag[1], diag[2]])
-    k = int(np.argmax(candidates))
-    if k == 0:
-        s = 2.0 * np.sqrt(1.0 + trace)
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif k == 1:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif k == 2:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
+    """Scalar-first unit quaternion of a rotation matrix, with ``w >= 0``, stable at every angle."""
+    return rotmat_to_quat(torch.as_tensor(np.asarray(rot, dtype=np.float64))).numpy()
 
 
 def object_to_camera_to_c2w(rot: np.ndarray, r_cam: np.ndarray) -> np.ndarray:

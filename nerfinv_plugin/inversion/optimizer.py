@@ -1,0 +1,131 @@
+"""Optimizing N candidate poses in parallel against one observed image (thesis section 3.3).
+
+Each candidate is ``T = C exp([S] theta) C^-1 T0``: screw coordinates ``theta`` (angular part first)
+act on the start pose ``T0`` about the point ``C`` (the target centre by default, so a rotation turns the
+camera around the target instead of swinging the target out of view; ``screw_origin="world"`` gives the
+thesis' plain ``exp([S] theta) T0`` about the model-frame origin). All candidates' rays go through the
+model in chunked batches; each chunk's loss is back-propagated before the next is rendered, and the
+accumulated pose gradient is pushed into ``theta`` once per iteration. Adam, exponentially decaying
+learning rate.
+"""
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from nerfinv_plugin.geometry.se3 import exp_se3
+from nerfinv_plugin.inversion.losses import LossName, per_ray_loss
+from nerfinv_plugin.inversion.sampling import PixelSampler
+from nerfinv_plugin.model.loaded import LoadedModel
+from nerfinv_plugin.model.render import Intrinsics, render_chunks
+
+
+@dataclass
+class OptimizerConfig:
+    """Gradient descent on the candidates of one Monte Carlo step."""
+
+    iterations: int = 60
+    """Iterations per Monte Carlo step (the thesis used 60)."""
+    lr: float = 0.01
+    """Adam learning rate at the start of each step (the thesis' 0.01)."""
+    lr_decay: float = 0.8
+    """Multiplies the learning rate every ``lr_decay_iterations`` iterations, smoothly (iNeRF's 0.8)."""
+    lr_decay_iterations: int = 20
+    loss: LossName = "mse"
+    """Photometric loss: mse (thesis), mape (Parallel Inversion) or huber."""
+    screw_origin: Literal["target", "world"] = "target"
+    """Point the screw motions turn about: the target centre, or the model frame's origin (thesis)."""
+
+
+@dataclass
+class StepResult:
+    """Candidates after one step of optimization."""
+
+    c2w: Tensor
+    """[N, 4, 4] final poses (model frame, OpenGL axes)."""
+    losses: Tensor
+    """[N] loss of each final pose on the frame's evaluation pixels; ``inf`` for dropped candidates."""
+    history: list[dict] = field(default_factory=list)
+    """Per iteration: ``loss`` [N] on that iteration's pixels, and ``error_deg`` [N] when known."""
+    dropped: list[int] = field(default_factory=list)
+    """Candidates removed because their loss became NaN or infinite."""
+
+
+def _centred(centre: Tensor) -> tuple[Tensor, Tensor]:
+    to_centre = torch.eye(4, dtype=centre.dtype, device=centre.device)
+    to_centre[:3, 3] = centre
+    from_centre = torch.eye(4, dtype=centre.dtype, device=centre.device)
+    from_centre[:3, 3] = -centre
+    return to_centre, from_centre
+
+
+def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor, observed: Tensor,
+                     loss: LossName, backward: bool) -> Tensor:
+    """Mean loss of each candidate [N] over ``pixels``; with ``backward``, gradients accumulate into
+    ``c2w.grad`` chunk by chunk, so memory stays bounded by one chunk."""
+    n, p = c2w.shape[0], pixels.shape[0]
+    totals = torch.zeros(n, dtype=torch.float32, device=loaded.device)
+    targets = observed.repeat(n, 1)
+    candidate_of_ray = torch.arange(n, device=loaded.device).repeat_interleave(p)
+    with torch.set_grad_enabled(backward):
+        for part, out in render_chunks(loaded, c2w, intrinsics, pixels):
+            per_ray = per_ray_loss(loss, out.rgb, targets[part]) / p
+            if backward:
+                # Non-finite rays must not poison the others' gradients; their candidates get dropped.
+                torch.where(torch.isfinite(per_ray), per_ray, 0.0).sum().backward()
+            totals.index_add_(0, candidate_of_ray[part], per_ray.detach())
+    return totals
+
+
+def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, intrinsics: Intrinsics,
+                        sampler: PixelSampler, eval_pixels: Tensor, centre: Tensor, config: OptimizerConfig,
+                        rng: np.random.Generator,
+                        error_fn: Callable[[Tensor], Tensor] | None = None) -> StepResult:
+    """Optimize candidates ``start`` [N, 4, 4] against ``observed`` [H, W, 3] (float in [0, 1]).
+
+    ``sampler`` must be prepared on the observed image; it draws fresh pixels each iteration, shared by all
+    candidates. Final losses are measured on ``eval_pixels`` [E, 2], fixed for the frame, so candidates
+    (and steps) are ranked on the same pixels. ``error_fn`` maps poses [N, 4, 4] to errors in degrees,
+    recorded in the history when the truth is known.
+    """
+    device = loaded.device
+    start = start.to(device, torch.float32)
+    n = start.shape[0]
+    theta = torch.zeros(n, 6, device=device, requires_grad=True)
+    to_c, from_c = _centred(centre.to(device, torch.float32)) if config.screw_origin == "target" else \
+        (torch.eye(4, device=device), torch.eye(4, device=device))
+    optimizer = torch.optim.Adam([theta], lr=config.lr)
+    gamma = config.lr_decay ** (1.0 / config.lr_decay_iterations)
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
+    alive = torch.ones(n, dtype=torch.bool, device=device)
+    history = []
+
+    def poses() -> Tensor:
+        return to_c @ exp_se3(theta) @ from_c @ start
+
+    for _ in range(config.iterations):
+        pixels = torch.as_tensor(sampler.sample(rng), device=device)
+        c2w = poses()
+        leaf = c2w.detach().requires_grad_(True)
+        losses = candidate_losses(loaded, leaf, intrinsics, pixels, observed[pixels[:, 0], pixels[:, 1]],
+                                  config.loss, backward=True)
+        alive &= torch.isfinite(losses)
+        optimizer.zero_grad(set_to_none=True)
+        c2w.backward(torch.where(alive[:, None, None], leaf.grad, 0.0))
+        optimizer.step()
+        scheduler.step()
+        record = {"loss": torch.where(alive, losses, torch.inf).cpu().numpy()}
+        if error_fn is not None:
+            record["error_deg"] = error_fn(c2w.detach()).cpu().numpy()
+        history.append(record)
+    final = poses().detach()
+    losses = candidate_losses(loaded, final, intrinsics, eval_pixels.to(device),
+                              observed[eval_pixels[:, 0], eval_pixels[:, 1]], config.loss, backward=False)
+    alive &= torch.isfinite(losses)
+    losses = torch.where(alive, losses, torch.inf)
+    dropped = torch.nonzero(~alive).flatten().tolist()
+    return StepResult(final, losses, history, dropped)
