@@ -8,7 +8,9 @@ product. Parameters, hash function and table layout are untouched, so checkpoint
 outputs agree with nerfstudio's to float rounding (tested).
 """
 
+import contextlib
 import types
+from collections.abc import Iterator
 
 import torch
 from nerfstudio.field_components.encodings import HashEncoding
@@ -50,3 +52,16 @@ def use_fused_hash_encoding(module: torch.nn.Module) -> int:
             sub.pytorch_fwd = types.MethodType(fused_hash_forward, sub)
             count += 1
     return count
+
+
+@contextlib.contextmanager
+def stock_hash_encoding(module: torch.nn.Module) -> Iterator[None]:
+    """Within the block, hash encodings inside ``module`` run nerfstudio's own torch forward again (for
+    comparing against code that used stock nerfstudio); the fused forward returns on exit."""
+    switched = [sub for sub in module.modules() if isinstance(sub, HashEncoding) and "pytorch_fwd" in vars(sub)]
+    saved = [vars(sub).pop("pytorch_fwd") for sub in switched]
+    try:
+        yield
+    finally:
+        for sub, method in zip(switched, saved):
+            sub.pytorch_fwd = method

@@ -1,0 +1,144 @@
+"""The inversion engine on the tiny toy model: convergence along a trajectory, the Monte Carlo schedule,
+fixed mode, determinism, the motion prior and the starting-pose sources."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from nerfinv_plugin.geometry.frames import opencv_to_opengl
+from nerfinv_plugin.geometry.se3 import exp_se3, geodesic_deg, log_se3
+from nerfinv_plugin.inversion.optimizer import OptimizerConfig
+from nerfinv_plugin.inversion.starts import (
+    around_prior,
+    inerf_protocol_starts,
+    sphere_shell,
+    training_views,
+    volume,
+)
+from nerfinv_plugin.inversion.tracker import Frame, MonteCarloConfig, Tracker, _constant_velocity, keep_count
+from nerfinv_plugin.model.loading import load_model
+from nerfinv_plugin.model.render import Intrinsics
+from nerfinv_plugin.synth.datasets import speedplus_like_camera, write_shirt_trajectories
+from nerfinv_plugin.synth.trajectories import TrajectorySpec
+
+RANGE_M = 5.0
+
+
+@pytest.fixture(scope="module")
+def toy_sequence(toy_run, tmp_path_factory):
+    """The tiny toy model and a roe1 trajectory of the toy scene (4 degrees a frame) at the model's
+    training resolution, with true poses in the model frame."""
+    config, data = toy_run
+    loaded = load_model(config, device="cpu")
+    width = json.loads((data / "transforms.json").read_text())["w"]
+    height = json.loads((data / "transforms.json").read_text())["h"]
+    camera = speedplus_like_camera(width, height)
+    out = tmp_path_factory.mktemp("toy_traj")
+    spec = TrajectorySpec("roe1", num_frames=5, range_m=RANGE_M)
+    rendered = write_shirt_trajectories(out, "toy", [spec], camera, False, seed=0, spp=32, step=lambda: None)[0]
+    intrinsics = Intrinsics.from_opencv(camera.matrix, width, height)
+    frames = []
+    for c2w_cv, path in zip(rendered.c2w_opencv, rendered.image_paths):
+        image = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+        truth = torch.as_tensor(loaded.dataset_to_model(opencv_to_opengl(c2w_cv)), dtype=torch.float32)
+        frames.append(Frame(image, intrinsics, path.name, truth))
+    centre = torch.as_tensor(loaded.dataset_to_model(np.eye(4))[:3, 3], dtype=torch.float32)
+    return loaded, frames, centre
+
+
+def _error(poses: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    return geodesic_deg(poses[:, :3, :3], truth[None, :3, :3].expand_as(poses[:, :3, :3]))
+
+
+def _starts(truth: torch.Tensor, centre: torch.Tensor, count: int, scale: float, seed: int = 0) -> torch.Tensor:
+    """Starts 15 to 20 degrees off (turned about the target) and 5% of the range away."""
+    return inerf_protocol_starts(truth, centre, count, 15.0, 20.0, 0.05 * RANGE_M * scale, seed)
+
+
+def test_trajectory_mode_converges_within_five_frames(toy_sequence):
+    loaded, frames, centre = toy_sequence
+    start = _starts(frames[0].c2w_true, centre, 8, loaded.dataparser_scale)
+    start_errors = _error(start, frames[0].c2w_true)
+    assert start_errors.min() >= 15 - 1e-3 and start_errors.max() <= 20 + 1e-3
+    tracker = Tracker(loaded, centre, OptimizerConfig(iterations=30), MonteCarloConfig(keep=(2, 1), spawn=2),
+                      error_fn=_error)
+    records = tracker.run(frames, start)
+    errors = [float(_error(r.estimate[None], frames[r.frame_index].c2w_true)[0]) for r in records]
+    assert min(errors) < 5.0, errors
+    assert errors[-1] < 0.5 * float(start_errors.mean()), errors
+    assert [r.candidates for r in records] == [8, 6, 3, 3, 3]  # keep 2 x (1 + 2 spawned), then 1 x 3
+
+
+def test_fixed_mode_best_loss_never_increases_and_counts_follow_the_schedule(toy_sequence):
+    loaded, frames, centre = toy_sequence
+    start = _starts(frames[0].c2w_true, centre, 6, loaded.dataparser_scale, seed=1)
+    mc = MonteCarloConfig(mode="fixed", keep_fraction=0.5, spawn=1)
+    tracker = Tracker(loaded, centre, OptimizerConfig(iterations=6), mc, pixels=128, eval_pixels=512, seed=3)
+    records = tracker.run(frames, start, steps=4)
+    losses = [r.loss for r in records]
+    assert all(b <= a for a, b in zip(losses, losses[1:])), losses
+    assert all(r.frame_index == 0 for r in records)
+    # keep 50% of 6 = 3 (+3 spawned), then 25% of 6 rounded = 2 (+2), then 1 (+1), at least 1
+    assert [r.kept for r in records] == [3, 2, 1, 1]
+    assert [r.candidates for r in records] == [6, 6, 4, 2]
+
+
+def test_keep_count_schedules():
+    thesis = MonteCarloConfig(keep=(3, 1))
+    assert [keep_count(thesis, s, 15) for s in range(4)] == [3, 1, 1, 1]
+    halving = MonteCarloConfig(keep_fraction=0.25)
+    assert [keep_count(halving, s, 80) for s in range(6)] == [20, 10, 5, 2, 1, 1]
+    assert keep_count(MonteCarloConfig(keep=(5,)), 0, 2) == 2  # never more than there are
+
+
+def test_same_seed_same_numbers(toy_sequence):
+    loaded, frames, centre = toy_sequence
+    start = _starts(frames[0].c2w_true, centre, 3, loaded.dataparser_scale, seed=2)
+
+    def run(seed: int):
+        tracker = Tracker(loaded, centre, OptimizerConfig(iterations=3), MonteCarloConfig(keep=(1,), spawn=2),
+                          pixels=64, eval_pixels=128, seed=seed)
+        return tracker.run(frames, start, steps=2)
+
+    a, b, c = run(7), run(7), run(8)
+    for ra, rb in zip(a, b):
+        assert ra.loss == rb.loss and torch.equal(ra.estimate, rb.estimate)
+        assert np.array_equal(ra.result.history[-1]["loss"], rb.result.history[-1]["loss"])
+    assert any(ra.loss != rc.loss for ra, rc in zip(a, c))
+
+
+def test_constant_velocity_prediction_extrapolates_a_screw_motion():
+    step = exp_se3(torch.tensor([[0.02, -0.05, 0.07, 0.1, 0.0, -0.03]], dtype=torch.float64))[0]
+    first = exp_se3(torch.tensor([[0.3, 0.2, -0.1, 1.0, 2.0, 5.0]], dtype=torch.float64))[0]
+    second = step @ first
+    predicted = _constant_velocity(second.float(), (step @ second).float()).double() @ (step @ second)
+    torch.testing.assert_close(predicted, step @ step @ second, atol=1e-5, rtol=1e-5)
+    assert torch.allclose(log_se3(_constant_velocity(first.float(), second.float()).double()),
+                          log_se3(step), atol=1e-5)
+
+
+def test_starting_pose_sources(toy_run):
+    _, data = toy_run
+    rng = np.random.default_rng(0)
+    views = training_views(data / "transforms_train.json", 5, rng)
+    frames = json.loads((data / "transforms_train.json").read_text())["frames"]
+    all_views = np.array([f["transform_matrix"] for f in frames])
+    assert len(views) == 5 and all(any(np.allclose(v, a) for a in all_views) for v in views)
+    target = np.array([0.1, -0.2, 0.3])
+    cases = [(sphere_shell(50, 6.0, target, rng), 6.0, 6.0), (volume(200, 9.0, 2.0, target, rng), 2.0, 9.0)]
+    for poses, lo, hi in cases:
+        ranges = np.linalg.norm(poses[:, :3, 3] - target, axis=1)
+        assert ranges.min() >= lo - 1e-9 and ranges.max() <= hi + 1e-9
+        # OpenGL axes: the camera looks along -z, straight at the target.
+        to_target = (target - poses[:, :3, 3]) / ranges[:, None]
+        np.testing.assert_allclose(np.einsum("ni,ni->n", -poses[:, :3, 2], to_target), 1.0, atol=1e-9)
+    far = volume(2000, 9.0, 0.0, target, rng)
+    assert np.median(np.linalg.norm(far[:, :3, 3] - target, axis=1)) > 6.5  # uniform in volume: mostly far
+    prior = sphere_shell(1, 5.0, target, rng)[0]
+    noisy = around_prior(prior, 10, 10.0, 0.2, target, seed=0)
+    assert np.allclose(noisy[0], prior) and not np.allclose(noisy[1], prior)
+    rot = geodesic_deg(torch.as_tensor(noisy[:, :3, :3]), torch.as_tensor(prior[:3, :3]).expand(10, 3, 3))
+    assert float(rot.max()) <= 10 * np.sqrt(3) + 1e-6
