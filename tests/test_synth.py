@@ -21,7 +21,7 @@ from nerfinv_plugin.synth.render import distort_image, distortion_padding, rende
 from nerfinv_plugin.synth.scenes import TANGO_KEYPOINTS, build_scene
 from nerfinv_plugin.synth.trajectories import TrajectorySpec
 
-SPECS = [TrajectorySpec("roe1", num_frames=4), TrajectorySpec("roe2", num_frames=4)]
+SPECS = [TrajectorySpec(kind="roe1", num_frames=4), TrajectorySpec(kind="roe2", num_frames=4)]
 
 
 def _noop() -> None:
@@ -134,7 +134,7 @@ def test_distort_image_is_undone_by_opencv_undistort():
 
 def test_distortion_option_writes_its_coefficients_and_warps_images(tmp_path):
     camera = speedplus_like_camera(240, 150)
-    spec = [TrajectorySpec("roe1", num_frames=1, range_m=2.5)]
+    spec = [TrajectorySpec(kind="roe1", num_frames=1, range_m=2.5)]
     ideal = write_shirt_trajectories(tmp_path / "a", "toy", spec, camera, False, seed=1, spp=4, step=_noop)
     warped = write_shirt_trajectories(tmp_path / "b", "toy", spec, camera, True, seed=1, spp=4, step=_noop)
     np.testing.assert_allclose(json.loads((tmp_path / "b" / "shirt" / "camera.json").read_text())["distCoeffs"],

@@ -37,7 +37,7 @@ def toy_sequence(toy_run, tmp_path_factory):
     height = json.loads((data / "transforms.json").read_text())["h"]
     camera = speedplus_like_camera(width, height)
     out = tmp_path_factory.mktemp("toy_traj")
-    spec = TrajectorySpec("roe1", num_frames=5, range_m=RANGE_M)
+    spec = TrajectorySpec(kind="roe1", num_frames=5, range_m=RANGE_M)
     rendered = write_shirt_trajectories(out, "toy", [spec], camera, False, seed=0, spp=32, step=lambda: None)[0]
     intrinsics = Intrinsics.from_opencv(camera.matrix, width, height)
     frames = []

@@ -1,7 +1,6 @@
 """``ns-invert-bench-render``: forward+backward throughput of our batched renderer against the thesis'."""
 
 import statistics
-import sys
 import time
 from dataclasses import dataclass
 from datetime import datetime
@@ -9,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import tyro
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from rich.console import Console
 
-from nerfinv_plugin.geometry.frames import look_at_c2w_opencv, opencv_to_opengl
+from nerfinv_plugin.cli import run
+from nerfinv_plugin.inversion.starts import sphere_shell
 from nerfinv_plugin.model.fused_hash import stock_hash_encoding
 from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loaded import LoadedModel
@@ -70,7 +69,7 @@ class RenderBenchmark:
     repeats: int = 5
     """Timed iterations of each way (after one warm-up each); the median is reported."""
     range_m: float = 5.0
-    """Distance of the candidate cameras from the dataset origin, in dataset units (metres)."""
+    """Distance of the candidate cameras (random, looking at the dataset origin) in dataset units."""
     width: int = 240
     """Image width in pixels; the field of view is SPEED+'s."""
     height: int = 150
@@ -86,12 +85,8 @@ class RenderBenchmark:
         rng = np.random.default_rng(self.seed)
         camera = speedplus_like_camera(self.width, self.height)
         intrinsics = Intrinsics.from_opencv(camera.matrix, self.width, self.height)
-        poses = []
-        for _ in range(self.candidates):
-            direction = rng.normal(size=3)
-            eye = self.range_m * direction / np.linalg.norm(direction)
-            poses.append(loaded.dataset_to_model(opencv_to_opengl(look_at_c2w_opencv(eye, np.zeros(3), [0, 0, 1]))))
-        c2w = torch.as_tensor(np.stack(poses)[:, :3], dtype=torch.float32, device=loaded.device)
+        poses = loaded.dataset_to_model(sphere_shell(self.candidates, self.range_m, np.zeros(3), rng))
+        c2w = torch.as_tensor(poses[:, :3], dtype=torch.float32, device=loaded.device)
         flat = rng.choice(self.width * self.height, size=self.pixels, replace=False)
         pixels = torch.as_tensor(np.stack([flat // self.width, flat % self.width], 1), device=loaded.device)
         target = torch.zeros(self.pixels, 3, device=loaded.device)
@@ -135,12 +130,7 @@ class RenderBenchmark:
 
 
 def entrypoint() -> None:
-    tyro.extras.set_accent_color("bright_yellow")
-    try:
-        tyro.cli(RenderBenchmark).main()
-    except ModelLoadError as err:
-        Console(stderr=True).print(f"[red]ns-invert-bench-render: {err}[/red]")
-        sys.exit(2)
+    run(RenderBenchmark, "ns-invert-bench-render", ModelLoadError)
 
 
 if __name__ == "__main__":

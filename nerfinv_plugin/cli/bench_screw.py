@@ -7,7 +7,6 @@ starts on the same frame, in one process.
 """
 
 import statistics
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,9 +14,9 @@ from typing import Literal
 
 import numpy as np
 import torch
-import tyro
 from rich.console import Console
 
+from nerfinv_plugin.cli import run
 from nerfinv_plugin.data.shirt import read_shirt
 from nerfinv_plugin.geometry.se3 import geodesic_deg
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
@@ -38,7 +37,9 @@ class ScrewBenchmark:
     frame: int = 0
     """Which frame to invert."""
     candidates: int = 8
+    """Candidates optimized together."""
     iterations: int = 60
+    """Iterations of the one Monte Carlo step."""
     min_deg: float = 15.0
     """Starts are turned by at least this angle about the target..."""
     max_deg: float = 20.0
@@ -48,6 +49,7 @@ class ScrewBenchmark:
     seeds: int = 3
     """Repetitions with different starts and pixels."""
     device: Device = "auto"
+    """Where to render."""
 
     def main(self) -> None:
         console = Console()
@@ -88,12 +90,7 @@ class ScrewBenchmark:
 
 
 def entrypoint() -> None:
-    tyro.extras.set_accent_color("bright_yellow")
-    try:
-        tyro.cli(ScrewBenchmark).main()
-    except (ModelLoadError, FileNotFoundError) as err:
-        Console(stderr=True).print(f"[red]ns-invert-bench-screw: {err}[/red]")
-        sys.exit(2)
+    run(ScrewBenchmark, "ns-invert-bench-screw", ModelLoadError, FileNotFoundError)
 
 
 if __name__ == "__main__":

@@ -1,14 +1,13 @@
 """``ns-invert-psnr``: how well a trained model renders the held-out views of a Blender-format dataset."""
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import tyro
 from rich.console import Console
 
+from nerfinv_plugin.cli import run
 from nerfinv_plugin.model.evaluate import evaluate_split
 from nerfinv_plugin.model.loading import Device, ModelLoadError, load_model
 
@@ -39,12 +38,7 @@ class HeldOutPSNR:
 
 
 def entrypoint() -> None:
-    tyro.extras.set_accent_color("bright_yellow")
-    try:
-        tyro.cli(HeldOutPSNR).main()
-    except (ModelLoadError, FileNotFoundError) as err:
-        Console(stderr=True).print(f"[red]ns-invert-psnr: {err}[/red]")
-        sys.exit(2)
+    run(HeldOutPSNR, "ns-invert-psnr", ModelLoadError, FileNotFoundError)
 
 
 if __name__ == "__main__":

@@ -1,14 +1,13 @@
 """``ns-invert-synth``: render a synthetic scene into a NeRF training set and SHIRT-format trajectories."""
 
 import json
-import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+from nerfinv_plugin.cli import run
 from nerfinv_plugin.synth.datasets import (
     TrainingSetSpec,
     speedplus_like_camera,
@@ -17,28 +16,16 @@ from nerfinv_plugin.synth.datasets import (
     write_training_set,
 )
 from nerfinv_plugin.synth.scenes import SceneName
-from nerfinv_plugin.synth.trajectories import TrajectoryKind, TrajectorySpec
+from nerfinv_plugin.synth.trajectories import TrajectoryKind, TrajectoryMotion, TrajectorySpec
 
 
 @dataclass
-class TrajectoryOptions:
+class TrajectoryOptions(TrajectoryMotion):
     """Trajectories rendered into ``<out>/shirt`` in the SHIRT layout."""
 
     kinds: tuple[TrajectoryKind, ...] = ("roe1", "roe2")
     """Which trajectories to render: roe1 holds a constant range while the target spins about its z axis;
     roe2 approaches slowly while the target tumbles about its z and x axes. Empty: none."""
-    num_frames: int = 20
-    """Frames per trajectory."""
-    frame_spacing_s: float = 5.0
-    """Seconds between frames (SHIRT uses 5 s)."""
-    range_m: float = 5.0
-    """roe1: constant camera-target range; roe2: range at the first frame (metres)."""
-    end_range_m: float = 4.0
-    """roe2: range at the last frame (metres)."""
-    spin_rate_deg_s: float = 0.8
-    """Spin rate about the body z axis (degrees per second; 0.8 at 5 s spacing is 4 degrees a frame)."""
-    second_rate_deg_s: float = 0.5
-    """roe2: tumble rate about the body x axis (degrees per second)."""
     width: int = 240
     """Image width in pixels (the thesis used 240x150 for SHIRT); the field of view is SPEED+'s."""
     height: int = 150
@@ -68,8 +55,7 @@ class Synth:
     def main(self) -> None:
         console = Console()
         t = self.trajectory
-        specs = [TrajectorySpec(kind, t.num_frames, t.frame_spacing_s, t.range_m, t.end_range_m,
-                                t.spin_rate_deg_s, t.second_rate_deg_s) for kind in t.kinds]
+        specs = [TrajectorySpec.of(kind, t) for kind in t.kinds]
         n_train = self.training.train_views + self.training.val_views + self.training.test_views
         total = n_train + t.num_frames * len(specs)
         columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
@@ -89,12 +75,7 @@ class Synth:
 
 
 def entrypoint() -> None:
-    tyro.extras.set_accent_color("bright_yellow")
-    try:
-        tyro.cli(Synth).main()
-    except (OSError, ValueError) as err:
-        Console(stderr=True).print(f"[red]ns-invert-synth: {err}[/red]")
-        sys.exit(2)
+    run(Synth, "ns-invert-synth", OSError, ValueError)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ A trajectory is produced as object-to-camera transforms, the way SHIRT labels de
 camera sees the target's body frame), and converted to camera-to-body poses for rendering.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal
 
 import numpy as np
@@ -51,22 +51,35 @@ def orbit_views(num: int, range_m: float, range_jitter: float, centre: np.ndarra
 TrajectoryKind = Literal["roe1", "roe2"]
 
 
-@dataclass(frozen=True)
-class TrajectorySpec:
+@dataclass
+class TrajectoryMotion:
     """Relative motion of a SHIRT-like trajectory. Rates are per second; ``frame_spacing_s`` turns them
     into per-frame steps (SHIRT images are 5 s apart)."""
 
-    kind: TrajectoryKind
     num_frames: int = 20
+    """Frames per trajectory."""
     frame_spacing_s: float = 5.0
+    """Seconds between frames (SHIRT uses 5 s)."""
     range_m: float = 5.0
-    """roe1: the constant range held; roe2: the range at the first frame."""
+    """roe1: constant camera-target range; roe2: range at the first frame (metres)."""
     end_range_m: float = 4.0
-    """roe2 only: the range at the last frame."""
+    """roe2: range at the last frame (metres)."""
     spin_rate_deg_s: float = 0.8
-    """roe1: spin about the body z axis; roe2: tumble rate about the body z axis."""
+    """Spin rate about the body z axis (degrees per second; 0.8 at 5 s spacing is 4 degrees a frame)."""
     second_rate_deg_s: float = 0.5
-    """roe2 only: tumble rate about the body x axis."""
+    """roe2: tumble rate about the body x axis (degrees per second)."""
+
+
+@dataclass
+class TrajectorySpec(TrajectoryMotion):
+    """A trajectory kind with its motion: roe1 holds a constant range while the target spins about its z
+    axis; roe2 approaches slowly while the target tumbles about its z and x axes."""
+
+    kind: TrajectoryKind = "roe1"
+
+    @classmethod
+    def of(cls, kind: TrajectoryKind, motion: TrajectoryMotion) -> "TrajectorySpec":
+        return cls(**{f.name: getattr(motion, f.name) for f in fields(TrajectoryMotion)}, kind=kind)
 
 
 def trajectory_object_to_camera(spec: TrajectorySpec, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
