@@ -5,6 +5,7 @@ import socket
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -200,3 +201,24 @@ def test_step_dependent_state_is_restored(toy_run, tmp_path):
     slope = loaded.model.config.proposal_weights_anneal_slope
     expected = slope * fraction / ((slope - 1) * fraction + 1)
     assert expected < 0.9 and loaded.model.proposal_sampler._anneal == pytest.approx(expected)
+
+
+def test_dataset_model_frame_conversions_match_nerfstudio():
+    """Our dataset -> model mapping inverted by nerfstudio's own ``transform_poses_to_original_space``."""
+    from nerfstudio.data.dataparsers.base_dataparser import transform_poses_to_original_space
+    from scipy.spatial.transform import Rotation
+
+    from nerfinv_plugin.model.loaded import LoadedModel
+
+    transform = np.eye(4)
+    transform[:3, :3] = Rotation.from_euler("xyz", [30, -50, 110], degrees=True).as_matrix()
+    transform[:3, 3] = [0.4, -1.2, 2.0]
+    loaded = LoadedModel(None, None, Path("x"), 0, torch.device("cpu"), transform, 0.37)
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, :3, :3] = Rotation.random(3, random_state=0).as_matrix()
+    poses[:, :3, 3] = np.random.default_rng(0).normal(size=(3, 3)) * 5
+    model = loaded.dataset_to_model(poses)
+    back = transform_poses_to_original_space(torch.as_tensor(model[:, :3]), torch.as_tensor(transform[:3]), 0.37,
+                                             camera_convention="opengl").numpy()
+    np.testing.assert_allclose(back, poses[:, :3], atol=1e-9)
+    np.testing.assert_allclose(loaded.model_to_dataset(model), poses, atol=1e-9)
