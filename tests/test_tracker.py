@@ -10,7 +10,8 @@ import torch
 
 from nerfinv_plugin.geometry.frames import opencv_to_opengl
 from nerfinv_plugin.geometry.se3 import exp_se3, geodesic_deg, log_se3
-from nerfinv_plugin.inversion.optimizer import OptimizerConfig
+from nerfinv_plugin.inversion.optimizer import OptimizerConfig, optimize_candidates
+from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.starts import (
     around_prior,
     inerf_protocol_starts,
@@ -142,3 +143,19 @@ def test_starting_pose_sources(toy_run):
     assert np.allclose(noisy[0], prior) and not np.allclose(noisy[1], prior)
     rot = geodesic_deg(torch.as_tensor(noisy[:, :3, :3]), torch.as_tensor(prior[:3, :3]).expand(10, 3, 3))
     assert float(rot.max()) <= 10 * np.sqrt(3) + 1e-6
+
+
+def test_a_candidate_whose_loss_turns_nan_is_dropped_and_the_rest_go_on(toy_sequence):
+    loaded, frames, centre = toy_sequence
+    start = _starts(frames[0].c2w_true, centre, 3, loaded.dataparser_scale, seed=4)
+    start[1, 0, 3] = float("nan")
+    frame = frames[0]
+    sampler = PixelSampler("random", 64).prepare(frame.image)
+    eval_pixels = torch.as_tensor(PixelSampler("random", 128).prepare(frame.image).sample(np.random.default_rng(0)))
+    observed = torch.as_tensor(frame.image, dtype=torch.float32) / 255.0
+    result = optimize_candidates(loaded, start, observed, frame.intrinsics, sampler, eval_pixels, centre,
+                                 OptimizerConfig(iterations=3), np.random.default_rng(0))
+    assert result.dropped == [1]
+    assert torch.isinf(result.losses[1]) and torch.isfinite(result.losses[[0, 2]]).all()
+    assert torch.isfinite(result.c2w[[0, 2]]).all()
+    assert not torch.equal(result.c2w[0], start[0])  # the others kept optimizing

@@ -52,7 +52,7 @@ class StepResult:
     history: list[dict] = field(default_factory=list)
     """Per iteration: ``loss`` [N] on that iteration's pixels, and ``error_deg`` [N] when known."""
     dropped: list[int] = field(default_factory=list)
-    """Candidates removed because their loss became NaN or infinite."""
+    """Candidates removed because their pose, loss or gradient became NaN or infinite."""
 
 
 def _centred(centre: Tensor) -> tuple[Tensor, Tensor]:
@@ -113,7 +113,10 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, in
         leaf = c2w.detach().requires_grad_(True)
         losses = candidate_losses(loaded, leaf, intrinsics, pixels, observed[pixels[:, 0], pixels[:, 1]],
                                   config.loss, backward=True)
-        alive &= torch.isfinite(losses)
+        # A pose, loss or gradient that is not finite ends the candidate. nerfstudio's renderer turns NaN
+        # colours into 0 in eval mode, so a NaN pose alone would still get a finite loss.
+        alive &= torch.isfinite(losses) & torch.isfinite(c2w).flatten(1).all(1) & \
+            torch.isfinite(leaf.grad).flatten(1).all(1)
         optimizer.zero_grad(set_to_none=True)
         c2w.backward(torch.where(alive[:, None, None], leaf.grad, 0.0))
         optimizer.step()
