@@ -8,16 +8,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from nerfstudio.cameras.cameras import Cameras, CameraType
 from rich.console import Console
 
 from nerfinv_plugin.cli import run
+from nerfinv_plugin.inversion.optimizer import candidate_losses
 from nerfinv_plugin.inversion.starts import sphere_shell
 from nerfinv_plugin.model.fused_hash import stock_hash_encoding
 from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.loading import Device, ModelLoadError, load_model
-from nerfinv_plugin.model.render import Intrinsics, render_chunks
+from nerfinv_plugin.model.render import Intrinsics, pinhole_cameras, render
 from nerfinv_plugin.synth.datasets import speedplus_like_camera
 
 
@@ -31,9 +31,7 @@ def thesis_step(loaded: LoadedModel, c2w: torch.Tensor, intrinsics: Intrinsics, 
     rgbs, losses = [], []
     with keep_gradients(model), stock_hash_encoding(model):
         for n in range(c2w.shape[0]):
-            camera = Cameras(camera_to_worlds=c2w[n:n + 1], fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx,
-                             cy=intrinsics.cy, width=intrinsics.width, height=intrinsics.height,
-                             camera_type=CameraType.PERSPECTIVE).to(loaded.device)
+            camera = pinhole_cameras(c2w[n:n + 1], intrinsics).to(loaded.device)
             bundle = camera.generate_rays(camera_indices=0, coords=pixels.float() + 0.5)
             rgb = model.get_outputs_for_camera_ray_bundle(bundle.reshape((pixels.shape[0], 1)))["rgb"][:, 0]
             rgbs.append(rgb)
@@ -44,15 +42,9 @@ def thesis_step(loaded: LoadedModel, c2w: torch.Tensor, intrinsics: Intrinsics, 
 
 def batched_step(loaded: LoadedModel, c2w: torch.Tensor, intrinsics: Intrinsics, pixels: torch.Tensor,
                  target: torch.Tensor) -> torch.Tensor:
-    """One iteration of our engine: all candidates' rays in chunked batches, frozen weights, each chunk's
-    loss back-propagated before the next chunk is rendered."""
-    rgbs = []
-    count = pixels.shape[0]
-    flat_target = target.repeat(c2w.shape[0], 1)
-    for part, out in render_chunks(loaded, c2w, intrinsics, pixels):
-        (((out.rgb - flat_target[part]) ** 2).sum() / count).backward()
-        rgbs.append(out.rgb.detach())
-    return torch.cat(rgbs).reshape(c2w.shape[0], count, 3)
+    """One iteration of our engine (``optimizer.candidate_losses``): all candidates' rays in chunked
+    batches, frozen weights, each chunk's loss back-propagated before the next chunk is rendered."""
+    return candidate_losses(loaded, c2w, intrinsics, pixels, target, "mse", backward=True)
 
 
 @dataclass
@@ -92,15 +84,15 @@ class RenderBenchmark:
         target = torch.zeros(self.pixels, 3, device=loaded.device)
         rays = self.candidates * self.pixels
 
-        def timed(step, frozen: bool) -> tuple[float, torch.Tensor]:
+        def timed(step, frozen: bool) -> tuple[float, torch.Tensor]:  # (seconds, what the step returns)
             leaf = c2w.clone().requires_grad_(True)
             loaded.model.requires_grad_(not frozen)
             try:
                 sync()
                 start = time.perf_counter()
-                rgb = step(loaded, leaf, intrinsics, pixels, target)
+                result = step(loaded, leaf, intrinsics, pixels, target)
                 sync()
-                return time.perf_counter() - start, rgb
+                return time.perf_counter() - start, result
             finally:
                 loaded.model.requires_grad_(False)
                 loaded.model.zero_grad(set_to_none=True)
@@ -110,7 +102,9 @@ class RenderBenchmark:
                 torch.cuda.synchronize(loaded.device)
 
         _, rgb_thesis = timed(thesis_step, frozen=False)
-        _, rgb_ours = timed(batched_step, frozen=True)
+        timed(batched_step, frozen=True)
+        with torch.no_grad():
+            rgb_ours = render(loaded, c2w, intrinsics, pixels).rgb
         thesis_times, our_times = [], []
         for _ in range(self.repeats):
             thesis_times.append(timed(thesis_step, frozen=False)[0])

@@ -63,17 +63,23 @@ def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
     return np.asarray(c2w, dtype=np.float64) @ OPENCV_TO_OPENGL
 
 
-def look_at_c2w_opencv(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+def look_at_c2w_opencv(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None,
+                       roll: float = 0.0) -> np.ndarray:
     """Camera-to-world pose (OpenCV axes) of a camera at ``eye`` whose boresight passes through
-    ``target``, with image-up as close to ``up`` as possible."""
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    ``target``, with image-up as close to ``up`` as possible (world z, or world y when looking almost
+    along z, if not given), then turned by ``roll`` radians about the boresight (the target stays put)."""
+    eye, target = (np.asarray(v, dtype=np.float64) for v in (eye, target))
     z = target - eye
     z /= np.linalg.norm(z)
-    x = np.cross(z, up)  # right = forward x up; image y then points down, away from up
+    if up is None:
+        up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.95 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(z, np.asarray(up, dtype=np.float64))  # right = forward x up; image y then points down
     if np.linalg.norm(x) < 1e-9:
         raise ValueError(f"up vector {up} is parallel to the viewing direction {z}")
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
+    c, s = np.cos(roll), np.sin(roll)
     c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye
+    c2w[:3, :3] = np.stack([x, y, z], 1) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    c2w[:3, 3] = eye
     return c2w

@@ -30,16 +30,9 @@ def training_views(transforms_json: Path, count: int, rng: np.random.Generator) 
 
 
 def _looking_at(eyes: np.ndarray, target: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    poses = []
-    for eye in eyes:
-        direction = (target - eye) / np.linalg.norm(target - eye)
-        up = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.95 else np.array([0.0, 1.0, 0.0])
-        c2w = look_at_c2w_opencv(eye, target, up)
-        roll = rng.uniform(-np.pi, np.pi)
-        c, s = np.cos(roll), np.sin(roll)
-        c2w[:3, :3] = c2w[:3, :3] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-        poses.append(opencv_to_opengl(c2w))
-    return np.array(poses)
+    """OpenGL camera-to-world poses at ``eyes`` looking at ``target``, each with a random roll."""
+    return np.array([opencv_to_opengl(look_at_c2w_opencv(eye, target, roll=rng.uniform(-np.pi, np.pi)))
+                     for eye in eyes])
 
 
 def _unit_vectors(count: int, rng: np.random.Generator) -> np.ndarray:

@@ -8,7 +8,7 @@ The best candidate of a step is the estimate for its frame.
 """
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -148,8 +148,7 @@ class Tracker:
 def _decayed(config: OptimizerConfig, step: int) -> OptimizerConfig:
     """The optimizer settings continuing the learning-rate decay across steps (``reset_lr=False``)."""
     factor = config.lr_decay ** (step * config.iterations / config.lr_decay_iterations)
-    return OptimizerConfig(config.iterations, config.lr * factor, config.lr_decay, config.lr_decay_iterations,
-                           config.loss, config.screw_origin)
+    return replace(config, lr=config.lr * factor)
 
 
 def _constant_velocity(previous: Tensor, current: Tensor) -> Tensor:

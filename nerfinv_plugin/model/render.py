@@ -84,7 +84,8 @@ def _check_pixels(pixels: Tensor, intrinsics: Intrinsics) -> None:
         raise ValueError(f"pixels fall outside the {intrinsics.width}x{intrinsics.height} image")
 
 
-def _cameras(c2w: Tensor, intrinsics: Intrinsics) -> Cameras:
+def pinhole_cameras(c2w: Tensor, intrinsics: Intrinsics) -> Cameras:
+    """nerfstudio cameras for poses [N, 3, 4] sharing one set of pinhole intrinsics."""
     return Cameras(camera_to_worlds=c2w, fx=float(intrinsics.fx), fy=float(intrinsics.fy), cx=float(intrinsics.cx),
                    cy=float(intrinsics.cy), width=intrinsics.width, height=intrinsics.height,
                    camera_type=CameraType.PERSPECTIVE)
@@ -97,7 +98,7 @@ def ray_bundle(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels:
     c2w = as_3x4(c2w)
     _check_pixels(pixels, intrinsics)
     n, p = c2w.shape[0], pixels.shape[0]
-    cameras = _cameras(c2w, intrinsics)
+    cameras = pinhole_cameras(c2w, intrinsics)
     camera_indices = torch.arange(n, device=c2w.device).repeat_interleave(p)[:, None]
     coords = (pixels.to(c2w.device, torch.float32) + 0.5).repeat(n, 1)
     bundle = cameras.generate_rays(camera_indices=camera_indices, coords=coords)
@@ -138,7 +139,7 @@ def _splat_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics,
     rows, cols = pixels[:, 0].to(loaded.device), pixels[:, 1].to(loaded.device)
     p = pixels.shape[0]
     for n in range(c2w.shape[0]):
-        outputs = loaded.model.get_outputs(_cameras(c2w[n:n + 1], intrinsics))
+        outputs = loaded.model.get_outputs(pinhole_cameras(c2w[n:n + 1], intrinsics))
         picked = {name: value[rows, cols] for name, value in outputs.items()
                   if isinstance(value, Tensor) and value.ndim == 3}
         yield slice(n * p, (n + 1) * p), RenderOutput(picked["rgb"], picked.get("accumulation"), picked.get("depth"))

@@ -40,11 +40,7 @@ def orbit_views(num: int, range_m: float, range_jitter: float, centre: np.ndarra
     poses = np.empty((num, 4, 4))
     for k, d in enumerate(dirs):
         distance = range_m * (1 + range_jitter * rng.uniform(-1, 1))
-        up = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.95 else np.array([0.0, 1.0, 0.0])
-        c2w = look_at_c2w_opencv(centre + distance * d, centre, up)
-        roll = _axis_angle(np.array([0.0, 0.0, 1.0]), rng.uniform(-np.pi, np.pi))
-        c2w[:3, :3] = c2w[:3, :3] @ roll  # roll about the boresight keeps the object centred
-        poses[k] = c2w
+        poses[k] = look_at_c2w_opencv(centre + distance * d, centre, roll=rng.uniform(-np.pi, np.pi))
     return poses
 
 
