@@ -1,19 +1,34 @@
 """Thin tyro front ends: each builds a dataclass from the command line and calls its ``main``."""
 
 import sys
+import warnings
 from typing import Any
 
 import tyro
 from rich.console import Console
+from rich.markup import escape
+
+# torch and nerfstudio deprecation notices on import say nothing to a user of these commands.
+warnings.filterwarnings("ignore", category=FutureWarning)
+warnings.filterwarnings("ignore", category=UserWarning, module="nerfstudio")
 
 
-def run(command: type, name: str, *expected: type[BaseException]) -> None:
-    """Parse ``command`` from the command line and run it. The ``expected`` errors are bad input, not
-    bugs: they end the program with their one-line message and exit code 2, without a traceback."""
+class Interrupted(Exception):
+    """Ctrl-C during long work; the message says what was kept and how to continue."""
+
+
+def run(command: type, name: str, *expected: type[BaseException], default: Any = None) -> None:
+    """Parse ``command`` from the command line (starting from ``default`` when given) and run it. The
+    ``expected`` errors are bad input, not bugs: they end the program with their one-line message and exit
+    code 2, without a traceback. Ctrl-C ends it with exit code 130."""
     tyro.extras.set_accent_color("bright_yellow")
-    parsed: Any = tyro.cli(command)
+    errors = Console(stderr=True, soft_wrap=True)  # one line, however long
     try:
+        parsed: Any = tyro.cli(command, default=default)
         parsed.main()
     except expected as err:
-        Console(stderr=True).print(f"[red]{name}: {err}[/red]")
+        errors.print(f"[red]{name}: {escape(str(err))}[/red]")
         sys.exit(2)
+    except (Interrupted, KeyboardInterrupt) as err:
+        errors.print(f"[red]{name}: {escape(str(err) or 'interrupted')}[/red]")
+        sys.exit(130)

@@ -17,13 +17,12 @@ import torch
 from rich.console import Console
 
 from nerfinv_plugin.cli import run
-from nerfinv_plugin.data.shirt import read_shirt
+from nerfinv_plugin.data.sequences import SequenceError, read_sequence
 from nerfinv_plugin.geometry.se3 import geodesic_deg
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.starts import inerf_protocol_starts
 from nerfinv_plugin.inversion.tracker import Frame, MonteCarloConfig, Tracker
 from nerfinv_plugin.model.loading import Device, ModelLoadError, load_model
-from nerfinv_plugin.model.render import Intrinsics
 
 
 @dataclass
@@ -32,8 +31,9 @@ class ScrewBenchmark:
 
     load_config: Path
     """config.yml of a trained run whose dataset frame is the target body frame."""
-    sequence: Path
-    """A SHIRT trajectory folder (<root>/roeN) of the same object."""
+    sequence: str
+    """A sequence of the same object with ground truth: a SHIRT trajectory (<root>/roeN[/domain]), a Blender
+    split (<scene>:<split>) or an image folder with camera.json and poses.json."""
     frame: int = 0
     """Which frame to invert."""
     candidates: int = 8
@@ -54,13 +54,17 @@ class ScrewBenchmark:
     def main(self) -> None:
         console = Console()
         loaded = load_model(self.load_config, device=self.device)
-        seq = read_shirt(self.sequence, start=self.frame, stop=self.frame + 1)
-        shirt = seq.frames[0]
-        truth = torch.as_tensor(loaded.dataset_to_model(shirt.c2w_true), dtype=torch.float32)
-        intrinsics = Intrinsics.from_opencv(seq.camera_matrix, seq.width, seq.height)
-        frame = Frame(shirt.image, intrinsics, shirt.name, truth)
+        seq = read_sequence(self.sequence, start=self.frame, stop=self.frame + 1)
+        observed = seq.frames[0]
+        if observed.c2w_true is None:
+            raise SequenceError(f"frame {self.frame} of {self.sequence} has no ground-truth pose; this benchmark "
+                                "needs one (add it to poses.json, or use a SHIRT or Blender sequence)")
+        truth = torch.as_tensor(loaded.dataset_to_model(observed.c2w_true), dtype=torch.float32)
+        frame = Frame(observed.image, seq.intrinsics, observed.name, truth)
         centre = torch.as_tensor(loaded.dataset_to_model(np.eye(4))[:3, 3], dtype=torch.float32)
-        shift = self.shift_fraction * float(np.linalg.norm(shirt.r_true)) * loaded.dataparser_scale
+        # The camera's distance from the target origin: the true range of a SHIRT label.
+        target_range = float(np.linalg.norm(observed.c2w_true[:3, 3]))
+        shift = self.shift_fraction * target_range * loaded.dataparser_scale
         results: dict[str, list[tuple[float, float]]] = {"target": [], "world": []}
         for seed in range(self.seeds):
             start = inerf_protocol_starts(truth, centre, self.candidates, self.min_deg, self.max_deg, shift, seed)
@@ -90,7 +94,7 @@ class ScrewBenchmark:
 
 
 def entrypoint() -> None:
-    run(ScrewBenchmark, "ns-invert-bench-screw", ModelLoadError, FileNotFoundError)
+    run(ScrewBenchmark, "ns-invert-bench-screw", ModelLoadError, SequenceError)
 
 
 if __name__ == "__main__":

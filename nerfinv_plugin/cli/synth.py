@@ -1,4 +1,5 @@
-"""``ns-invert-synth``: render a synthetic scene into a NeRF training set and SHIRT-format trajectories."""
+"""``ns-invert-synth``: render a synthetic scene into a NeRF training set, SHIRT-format trajectories and a
+SPEED+-format tree."""
 
 import json
 from dataclasses import asdict, dataclass, field
@@ -16,6 +17,7 @@ from nerfinv_plugin.synth.datasets import (
     write_training_set,
 )
 from nerfinv_plugin.synth.scenes import SceneName
+from nerfinv_plugin.synth.speedplus import write_speedplus
 from nerfinv_plugin.synth.trajectories import TrajectoryKind, TrajectoryMotion, TrajectorySpec
 
 
@@ -36,9 +38,34 @@ class TrajectoryOptions(TrajectoryMotion):
 
 
 @dataclass
+class SpeedPlusOptions:
+    """Views rendered into ``<out>/speedplus`` in the SPEED+ layout, for ``ns-train ... speedplus-data``."""
+
+    train: int = 0
+    """Views in synthetic/train.json; 0 writes no SPEED+ tree."""
+    validation: int = 10
+    """Views in synthetic/validation.json (nerfstudio's val and test split)."""
+    width: int = 240
+    """Image width in pixels; the field of view is SPEED+'s."""
+    height: int = 150
+    """Image height in pixels."""
+    distortion: bool = False
+    """Pass the images through the SPEED+ lens distortion written in camera.json."""
+    range_m: float = 5.0
+    """Camera distance from the object centre (metres)."""
+    range_jitter: float = 0.2
+    """Ranges are drawn from ``range_m * (1 +- range_jitter)``."""
+
+    @property
+    def views(self) -> int:
+        return self.train + self.validation if self.train else 0
+
+
+@dataclass
 class Synth:
     """Render a synthetic scene with Mitsuba 3 on the CPU: a NeRF training set (Blender and nerfstudio
-    transforms files) and camera trajectories in the SHIRT format. Deterministic for a seed."""
+    transforms files), camera trajectories in the SHIRT format and, on request, a SPEED+ tree.
+    Deterministic for a seed."""
 
     out: Path
     """Output folder; the training set goes at its top, trajectories under ``shirt/``."""
@@ -51,13 +78,15 @@ class Synth:
     training: TrainingSetSpec = field(default_factory=TrainingSetSpec)
     """The training set. Set train-views, val-views and test-views to 0 to render none."""
     trajectory: TrajectoryOptions = field(default_factory=TrajectoryOptions)
+    speedplus: SpeedPlusOptions = field(default_factory=SpeedPlusOptions)
 
     def main(self) -> None:
         console = Console()
         t = self.trajectory
         specs = [TrajectorySpec.of(kind, t) for kind in t.kinds]
         n_train = self.training.train_views + self.training.val_views + self.training.test_views
-        total = n_train + t.num_frames * len(specs)
+        sp = self.speedplus
+        total = n_train + t.num_frames * len(specs) + sp.views
         columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
         with Progress(*columns, console=console) as progress:
             task = progress.add_task(f"rendering {self.scene}", total=total)
@@ -68,10 +97,16 @@ class Synth:
                 camera = speedplus_like_camera(t.width, t.height)
                 write_shirt_trajectories(self.out, self.scene, specs, camera, t.distortion, self.seed,
                                          self.spp, step)
+            if sp.views:
+                write_speedplus(self.out / "speedplus", self.scene, sp.train, sp.validation, sp.width, sp.height,
+                                sp.distortion, self.seed, self.spp, step, sp.range_m, sp.range_jitter)
         write_json_atomic(self.out / "synth.json", json.loads(json.dumps(asdict(self), default=str)))
         console.print(f"[green]wrote {self.out}[/green]")
         if n_train:
             console.print(f"train a model: ns-train nerfacto-tiny --data {self.out}")
+        if sp.views:
+            console.print("train on the SPEED+ tree: ns-train nerfacto-tiny --pipeline.model.background-color black "
+                          f"speedplus-data --data {self.out / 'speedplus'}")
 
 
 def entrypoint() -> None:

@@ -84,13 +84,15 @@ def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, p
 def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, intrinsics: Intrinsics,
                         sampler: PixelSampler, eval_pixels: Tensor, centre: Tensor, config: OptimizerConfig,
                         rng: np.random.Generator,
-                        error_fn: Callable[[Tensor], Tensor] | None = None) -> StepResult:
+                        error_fn: Callable[[Tensor], Tensor] | None = None,
+                        on_iteration: Callable[[int, dict], None] | None = None) -> StepResult:
     """Optimize candidates ``start`` [N, 4, 4] against ``observed`` [H, W, 3] (float in [0, 1]).
 
     ``sampler`` must be prepared on the observed image; it draws fresh pixels each iteration, shared by all
     candidates. Final losses are measured on ``eval_pixels`` [E, 2], fixed for the frame, so candidates
     (and steps) are ranked on the same pixels. ``error_fn`` maps poses [N, 4, 4] to errors in degrees,
-    recorded in the history when the truth is known.
+    recorded in the history when the truth is known. ``on_iteration(i, record)`` sees each iteration's
+    history record as it is made (progress bars).
     """
     device = loaded.device
     start = start.to(device, torch.float32)
@@ -107,7 +109,7 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, in
     def poses() -> Tensor:
         return to_c @ exp_se3(theta) @ from_c @ start
 
-    for _ in range(config.iterations):
+    for iteration in range(config.iterations):
         pixels = torch.as_tensor(sampler.sample(rng), device=device)
         c2w = poses()
         leaf = c2w.detach().requires_grad_(True)
@@ -125,6 +127,8 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, in
         if error_fn is not None:
             record["error_deg"] = error_fn(c2w.detach()).cpu().numpy()
         history.append(record)
+        if on_iteration is not None:
+            on_iteration(iteration, record)
     final = poses().detach()
     losses = candidate_losses(loaded, final, intrinsics, eval_pixels.to(device),
                               observed[eval_pixels[:, 0], eval_pixels[:, 1]], config.loss, backward=False)

@@ -73,11 +73,47 @@ class StepRecord:
 
     frame_index: int
     estimate: Tensor
-    """[4, 4] best pose of the step (model frame)."""
+    """[4, 4] best pose of the step (model frame); on a frame seen by the previous step too, the better of
+    the two steps' bests."""
     loss: float
     candidates: int
     result: StepResult
     kept: int = 0
+
+
+@dataclass
+class TrackerState:
+    """Everything the next step depends on. Saving it after every step and loading it back continues a run
+    with exactly the numbers an uninterrupted run would have produced."""
+
+    step: int
+    """Steps taken so far; indexes the keep schedule and the learning-rate decay."""
+    candidates: Tensor
+    """[N, 4, 4] poses the next step starts from."""
+    rng: np.random.Generator
+    """Pixel draws."""
+    generator: torch.Generator
+    """Spawned perturbations."""
+    last_frame: int = -1
+    last_estimate: Tensor | None = None
+    last_loss: float = float("inf")
+    previous_estimate: Tensor | None = None
+    """Estimate of the frame before ``last_frame``, for the motion prior."""
+
+    def state_dict(self) -> dict:
+        return {"step": self.step, "candidates": self.candidates, "rng": self.rng.bit_generator.state,
+                "generator": self.generator.get_state(), "last_frame": self.last_frame,
+                "last_estimate": self.last_estimate, "last_loss": self.last_loss,
+                "previous_estimate": self.previous_estimate}
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> "TrackerState":
+        rng = np.random.default_rng()
+        rng.bit_generator.state = state["rng"]
+        generator = torch.Generator()
+        generator.set_state(state["generator"])
+        return cls(state["step"], state["candidates"], rng, generator, state["last_frame"], state["last_estimate"],
+                   state["last_loss"], state["previous_estimate"])
 
 
 @dataclass
@@ -96,52 +132,66 @@ class Tracker:
     error_fn: Callable[[Tensor, Tensor], Tensor] | None = None
     """``(poses [N, 4, 4], true pose [4, 4]) -> degrees [N]``, for histories when the truth is known."""
 
+    def begin(self, start: Tensor, seed: int | None = None) -> TrackerState:
+        """The state before the first step, from the candidates ``start`` [N, 4, 4]."""
+        seed = self.seed if seed is None else seed
+        return TrackerState(0, start.to(torch.float32).cpu(), np.random.default_rng(seed),
+                            torch.Generator().manual_seed(seed))
+
+    def step(self, state: TrackerState, frame: Frame, frame_index: int,
+             on_iteration: Callable[[int, dict], None] | None = None) -> StepRecord:
+        """One Monte Carlo step against ``frame``: optimize, rank, keep, spawn. Updates ``state`` for the
+        next step. Consecutive steps on the same frame are elitist: a step that finds nothing better keeps
+        the previous estimate, so the best loss of a frame never increases."""
+        mc = self.monte_carlo
+        sampler = PixelSampler(self.sampling, self.pixels).prepare(frame.image)
+        eval_pixels = torch.as_tensor(
+            PixelSampler("random", self.eval_pixels).prepare(frame.image).sample(state.rng))
+        observed = torch.as_tensor(frame.image, dtype=torch.float32, device=self.loaded.device) / 255.0
+        optimizer = self.optimizer if mc.reset_lr or state.step == 0 else _decayed(self.optimizer, state.step)
+        error_fn = None
+        if self.error_fn is not None and frame.c2w_true is not None:
+            error_fn = lambda poses, truth=frame.c2w_true: self.error_fn(poses, truth)  # noqa: E731
+        result = optimize_candidates(self.loaded, state.candidates, observed, frame.intrinsics, sampler,
+                                     eval_pixels, self.centre, optimizer, state.rng, error_fn, on_iteration)
+        alive = int(torch.isfinite(result.losses).sum())
+        if alive == 0:
+            raise FloatingPointError(f"every candidate's loss became NaN or infinite on frame "
+                                     f"{frame.name or frame_index}")
+        order = torch.argsort(result.losses)
+        best = result.c2w[order[0]].cpu()
+        best_loss = float(result.losses[order[0]])
+        same_frame = state.last_frame == frame_index
+        if same_frame and state.last_loss <= best_loss:
+            best, best_loss = state.last_estimate, state.last_loss
+        kept_count = keep_count(mc, state.step, alive)
+        kept = result.c2w[order[:kept_count]].cpu()
+        previous = state.previous_estimate if same_frame else state.last_estimate
+        if mc.mode == "trajectory" and mc.motion_prior and previous is not None:
+            kept = _constant_velocity(previous, best) @ kept
+        spawned = perturb_about(kept.repeat_interleave(mc.spawn, 0), self.centre.cpu(), mc.spawn_rot_deg,
+                                mc.spawn_trans_m * self.loaded.dataparser_scale, state.generator)
+        record = StepRecord(frame_index, best, best_loss, state.candidates.shape[0], result, kept_count)
+        state.previous_estimate = previous
+        state.step += 1
+        state.candidates = torch.cat([kept, spawned])
+        state.last_frame, state.last_estimate, state.last_loss = frame_index, best, best_loss
+        return record
+
     def run(self, frames: Sequence[Frame], start: Tensor, steps: int | None = None,
             on_step: Callable[[StepRecord], None] | None = None) -> list[StepRecord]:
         """Track ``frames`` from the candidates ``start`` [N, 4, 4]. Trajectory mode runs one step per
         frame (``steps`` limits it); fixed mode runs ``steps`` steps on ``frames[0]``. ``on_step`` sees each
         record as soon as it exists (to write results as they come)."""
-        mc = self.monte_carlo
-        total = len(frames) if mc.mode == "trajectory" else (steps or 1)
-        if mc.mode == "trajectory" and steps is not None:
-            total = min(total, steps)
-        rng = np.random.default_rng(self.seed)
-        generator = torch.Generator().manual_seed(self.seed)
-        scale = self.loaded.dataparser_scale
-        candidates = start.to(torch.float32)
-        records: list[StepRecord] = []
+        trajectory = self.monte_carlo.mode == "trajectory"
+        total = min(len(frames), steps or len(frames)) if trajectory else (steps or 1)
+        state = self.begin(start)
+        records = []
         for step in range(total):
-            frame = frames[step if mc.mode == "trajectory" else 0]
-            sampler = PixelSampler(self.sampling, self.pixels).prepare(frame.image)
-            eval_pixels = torch.as_tensor(PixelSampler("random", self.eval_pixels).prepare(frame.image).sample(rng))
-            observed = torch.as_tensor(frame.image, dtype=torch.float32, device=self.loaded.device) / 255.0
-            optimizer = self.optimizer if mc.reset_lr or step == 0 else _decayed(self.optimizer, step)
-            error_fn = None
-            if self.error_fn is not None and frame.c2w_true is not None:
-                error_fn = lambda poses, truth=frame.c2w_true: self.error_fn(poses, truth)  # noqa: E731
-            result = optimize_candidates(self.loaded, candidates, observed, frame.intrinsics, sampler, eval_pixels,
-                                         self.centre, optimizer, rng, error_fn)
-            order = torch.argsort(result.losses)
-            best = result.c2w[order[0]].cpu()
-            best_loss = float(result.losses[order[0]])
-            if mc.mode == "fixed" and records and records[-1].loss <= best_loss:
-                # Elitism: a step that finds nothing better keeps the previous estimate (same image).
-                best, best_loss = records[-1].estimate, records[-1].loss
-            alive = int(torch.isfinite(result.losses).sum())
-            if alive == 0:
-                raise FloatingPointError(f"every candidate's loss became NaN or infinite at step {step}")
-            kept_count = keep_count(mc, step, alive)
-            kept = result.c2w[order[:kept_count]].cpu()
-            if mc.mode == "trajectory" and mc.motion_prior and records:
-                kept = _constant_velocity(records[-1].estimate, best) @ kept
-            spawned = perturb_about(kept.repeat_interleave(mc.spawn, 0), self.centre.cpu(), mc.spawn_rot_deg,
-                                    mc.spawn_trans_m * scale, generator)
-            record = StepRecord(step if mc.mode == "trajectory" else 0, best, best_loss, candidates.shape[0],
-                                result, kept_count)
-            records.append(record)
+            index = step if trajectory else 0
+            records.append(self.step(state, frames[index], index))
             if on_step is not None:
-                on_step(record)
-            candidates = torch.cat([kept, spawned])
+                on_step(records[-1])
         return records
 
 

@@ -1,0 +1,96 @@
+"""``ns-invert``: estimate the pose in every frame of a sequence with a trained nerfstudio model."""
+
+import sys
+from dataclasses import dataclass, fields
+
+import numpy as np
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from nerfinv_plugin.cli import Interrupted, run
+from nerfinv_plugin.data.sequences import SequenceError
+from nerfinv_plugin.inversion.session import Events, Inversion, InversionError
+from nerfinv_plugin.inversion.settings import InvertConfig, SettingsError, defaults_with_preset
+from nerfinv_plugin.model.loaded import ModelLoadError
+
+BAD_INPUT = (ModelLoadError, SequenceError, SettingsError, InversionError, FloatingPointError)
+"""Errors that mean the input or the settings are wrong: one line and exit code 2, no traceback."""
+
+
+def _frame_line(row: dict) -> str:
+    error = "" if row["rotation_deg"] is None else \
+        f"rotation {row['rotation_deg']:.2f} deg, translation {row['translation_m']:.3f} m, "
+    return (f"frame {row['frame']} ({row['name']}): {error}loss {row['loss']:.5f}, {row['candidates']} candidates, "
+            f"{row['wall_time_s']:.1f} s")
+
+
+def _summary_lines(summary: dict) -> list[str]:
+    lines = [f"{summary['frames_done']} of {summary['frames_total']} frames in "
+             f"{summary.get('wall_time_s', 0.0):.0f} s ({summary.get('mean_time_per_frame_s', 0.0):.1f} s a frame)"]
+    if "rotation_deg" in summary:
+        rot, success = summary["rotation_deg"], summary["success_rotation"]
+        lines.append(f"rotation error mean {rot['mean']:.2f} deg, median {rot['median']:.2f}, final "
+                     f"{rot['final']:.2f}; under 2/5/10 deg: " +
+                     " / ".join(f"{100 * v:.0f}%" for v in success.values()))
+        lines.append(f"translation error mean {summary['translation_m']['mean']:.3f} m "
+                     f"({100 * summary['translation_rel']['mean']:.1f}% of range); "
+                     f"SPEC score mean {summary['score']['mean']:.4f}")
+    return lines
+
+
+def invert(config: InvertConfig, console: Console) -> dict:
+    """Run with a rich progress bar (loss and error of the best candidate) and one line per frame."""
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+               TextColumn("loss {task.fields[loss]}  error {task.fields[error]}"))
+    with Progress(*columns, console=console) as progress:
+        task = progress.add_task("loading", total=None, loss="-", error="-")
+        steps = 0
+
+        def begin(total_steps: int, done_steps: int, per_step: int) -> None:
+            nonlocal steps
+            steps = total_steps
+            console.print(f"results: {inversion.folder.path}")
+            progress.update(task, total=total_steps * per_step, completed=done_steps * per_step,
+                            description=f"step {done_steps + 1}/{total_steps}")
+
+        def iteration(i: int, record: dict) -> None:
+            best = int(np.argmin(record["loss"]))
+            error = f"{record['error_deg'][best]:.2f} deg" if "error_deg" in record else "-"
+            progress.update(task, advance=1, loss=f"{record['loss'][best]:.5f}", error=error)
+
+        def step(row: dict) -> None:
+            progress.update(task, description=f"step {min(row['step'] + 2, steps)}/{steps}")
+
+        events = Events(begin, iteration, step, lambda row: console.print(_frame_line(row)),
+                        lambda message: console.print(f"[yellow]{message}[/yellow]"))
+        inversion = Inversion.resume(config.resume, events) if config.resume else Inversion.create(config, events)
+        try:
+            summary = inversion.run()
+        except KeyboardInterrupt:
+            raise Interrupted(f"interrupted; every finished frame is saved in {inversion.folder.path}. "
+                              f"Continue with: ns-invert --resume {inversion.folder.path}") from None
+    for line in _summary_lines(summary):
+        console.print(f"[bold]{line}[/bold]")
+    return summary
+
+
+@dataclass
+class Invert(InvertConfig):
+    __doc__ = InvertConfig.__doc__
+
+    def main(self) -> None:
+        invert(self, Console())
+
+
+def entrypoint() -> None:
+    try:
+        preset = defaults_with_preset()
+    except SettingsError as err:
+        Console(stderr=True, soft_wrap=True).print(f"[red]ns-invert: {escape(str(err))}[/red]")
+        sys.exit(2)
+    run(Invert, "ns-invert", *BAD_INPUT, default=Invert(**{f.name: getattr(preset, f.name) for f in fields(preset)}))
+
+
+if __name__ == "__main__":
+    entrypoint()

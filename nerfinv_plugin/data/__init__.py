@@ -1,0 +1,1 @@
+"""Reading observed sequences (SHIRT, Blender splits, image folders) and SPEED+ for training."""

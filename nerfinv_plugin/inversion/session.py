@@ -1,0 +1,227 @@
+"""One ``ns-invert`` run: load the model and the sequence, choose starting poses, run the Monte Carlo
+tracker frame after frame, and write every result into the run folder as soon as it exists.
+
+The schedule: frame ``k`` gets ``steps_per_frame`` consecutive steps. In ``trajectory`` mode the candidates
+carry over from frame to frame (the thesis' method); in ``fixed`` mode every frame starts again from the
+starting poses (parallel iNeRF on each image alone, the baseline). After every step the whole state is
+saved, so a run stopped anywhere (Ctrl-C, a crash, a full disk) resumes at the step it lost and ends with
+the numbers an uninterrupted run would have given.
+"""
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from nerfinv_plugin.data.sequences import Sequence, read_sequence
+from nerfinv_plugin.geometry.errors import label_error
+from nerfinv_plugin.geometry.frames import c2w_opencv_to_label, opencv_to_opengl
+from nerfinv_plugin.geometry.se3 import geodesic_deg
+from nerfinv_plugin.inversion import starts
+from nerfinv_plugin.inversion.settings import InvertConfig, read_config, write_config
+from nerfinv_plugin.inversion.tracker import Frame, StepRecord, Tracker, TrackerState
+from nerfinv_plugin.model.loaded import LoadedModel
+from nerfinv_plugin.model.loading import load_model
+from nerfinv_plugin.report.results import CONFIG, RunFolder
+from nerfinv_plugin.report.summary import summarize
+
+
+class InversionError(Exception):
+    """Settings that cannot work together; the message says what to change."""
+
+
+@dataclass
+class Events:
+    """What a front end hears while a run goes on (progress bars, messages). All optional."""
+
+    begin: Callable[[int, int, int], None] = lambda total_steps, done_steps, iterations: None
+    iteration: Callable[[int, dict], None] = lambda iteration, record: None
+    step: Callable[[dict], None] = lambda step: None
+    frame: Callable[[dict], None] = lambda row: None
+    warn: Callable[[str], None] = lambda message: None
+
+
+def sequence_name(spec: str) -> str:
+    """A readable experiment name: ``roe1``, ``scene-test``, ``images``."""
+    path, _, split = str(spec).partition(":")
+    name = Path(path.rstrip("/")).name or "sequence"
+    return f"{name}-{split}" if split else name
+
+
+def new_run_folder(config: InvertConfig) -> Path:
+    if config.load_config is None or config.sequence is None:
+        raise InversionError("give --load-config (the trained run's config.yml) and --sequence, "
+                             "or --resume RUN_DIR")
+    timestamp = config.timestamp or datetime.now().strftime("%Y-%m-%d_%H%M%S")
+    return config.output_dir / (config.name or sequence_name(config.sequence)) / "nerfinv" / timestamp
+
+
+def dataset_pose_to_label(c2w_opengl: np.ndarray) -> tuple[list[float], list[float]]:
+    """SHIRT / SPEED+ label (q scalar-first, r in metres) of a dataset-frame camera-to-world pose."""
+    q, r = c2w_opencv_to_label(opencv_to_opengl(c2w_opengl))  # the axis flip is its own inverse
+    return [float(v) for v in q], [float(v) for v in r]
+
+
+def _rotation_error(poses: Tensor, truth: Tensor) -> Tensor:
+    """Degrees between camera attitudes; the same in the model and the dataset frame (one rotation apart)."""
+    return geodesic_deg(poses[:, :3, :3], truth[None, :3, :3].expand_as(poses[:, :3, :3]).to(poses))
+
+
+@dataclass
+class Inversion:
+    """A run folder and the settings it runs with."""
+
+    config: InvertConfig
+    folder: RunFolder
+    events: Events = field(default_factory=Events)
+
+    @classmethod
+    def create(cls, config: InvertConfig, events: Events | None = None) -> "Inversion":
+        """A new run; its folder is made once the model and the sequence have loaded."""
+        path = new_run_folder(config)
+        if RunFolder(path).load() is not None:
+            raise InversionError(f"{path} already holds results: continue it with --resume {path}, "
+                                 "or give another --timestamp")
+        return cls(config, RunFolder(path), events or Events())
+
+    @classmethod
+    def resume(cls, path: Path, events: Events | None = None) -> "Inversion":
+        if not (Path(path) / CONFIG).is_file():
+            raise InversionError(f"{path} is not an ns-invert run folder (no {CONFIG}); give the folder "
+                                 "printed when the run started")
+        return cls(read_config(Path(path) / CONFIG), RunFolder(path), events or Events())
+
+    def run(self) -> dict:
+        """Run (or continue) to the end of the sequence; return the summary."""
+        c = self.config
+        loaded = load_model(c.load_config, device=c.device)
+        sequence = read_sequence(c.sequence, c.start, c.stop, c.stride, c.resolution, c.camera)
+        frames = [Frame(f.image, sequence.intrinsics, f.name, None if f.c2w_true is None else
+                        torch.as_tensor(loaded.dataset_to_model(f.c2w_true), dtype=torch.float32))
+                  for f in sequence.frames]
+        centre = torch.as_tensor(self._to_model(loaded, np.asarray(c.target)), dtype=torch.float32)
+        start = self._starts(loaded, sequence, centre)
+        tracker = Tracker(loaded, centre, c.optimizer, c.monte_carlo, c.sampling, c.pixels, c.eval_pixels,
+                          c.seed, _rotation_error)
+        self.folder.path.mkdir(parents=True, exist_ok=True)
+        if not (self.folder.path / CONFIG).is_file():
+            write_config(self.folder.path / CONFIG, dataclasses.replace(c, resume=None))
+        saved = self.folder.load()
+        if saved is None:
+            rows, steps, elapsed, state = [], [], 0.0, tracker.begin(start)
+        else:
+            rows, steps, elapsed = saved["rows"], saved["steps"], saved["elapsed_s"]
+            state = TrackerState.from_state_dict(saved["tracker"])
+            self.folder.export(rows, steps)  # catch up if the last run stopped between the two writes
+        total = len(frames) * c.steps_per_frame
+        self.events.begin(total, len(steps), c.optimizer.iterations)
+        frame_time = sum(s["wall_time_s"] for s in steps if s["index"] == len(rows))
+        for step_index in range(len(steps), total):
+            k, within = divmod(step_index, c.steps_per_frame)
+            if within == 0 and c.monte_carlo.mode == "fixed":
+                state = tracker.begin(start, seed=c.seed + k)
+            tic = time.perf_counter()
+            record = tracker.step(state, frames[k], k, self.events.iteration)
+            wall = time.perf_counter() - tic
+            elapsed += wall
+            frame_time += wall
+            steps.append(self._step_row(record, k, self._frame_number(k), step_index, wall))
+            if record.result.dropped:
+                self.events.warn(f"frame {k} ({frames[k].name}): dropped candidate(s) "
+                                 f"{', '.join(map(str, record.result.dropped))} (non-finite pose, loss or "
+                                 "gradient); going on with the others")
+            if within == c.steps_per_frame - 1:
+                rows.append(self._frame_row(loaded, record, sequence, k, frame_time, elapsed))
+                frame_time = 0.0
+            self.folder.save(rows, steps, state.state_dict(), elapsed)
+            self.events.step(steps[-1])
+            if within == c.steps_per_frame - 1:
+                self.events.frame(rows[-1])
+        summary = self.summary(rows, total // c.steps_per_frame, loaded, sequence)
+        self.folder.write_summary(summary)
+        return summary
+
+    @staticmethod
+    def _to_model(loaded: LoadedModel, point: np.ndarray) -> np.ndarray:
+        pose = np.eye(4)
+        pose[:3, 3] = point
+        return loaded.dataset_to_model(pose)[:3, 3]
+
+    def _starts(self, loaded: LoadedModel, sequence: Sequence, centre: Tensor) -> Tensor:
+        """Starting candidates [N, 4, 4] in the model frame."""
+        s, target = self.config.starts, np.asarray(self.config.target, dtype=np.float64)
+        rng = np.random.default_rng(self.config.seed)
+        first_truth = sequence.frames[0].c2w_true
+        if s.source == "truth-offset" or (s.source == "sphere-shell" and s.range_m is None):
+            if first_truth is None:
+                raise InversionError(f"--starts.source {s.source} (without --starts.range-m) needs the first "
+                                     "frame's true pose and this sequence has none: use --starts.source "
+                                     "sphere-shell --starts.range-m METRES")
+        if s.source == "truth-offset":
+            truth = torch.as_tensor(loaded.dataset_to_model(first_truth), dtype=torch.float32)
+            return starts.inerf_protocol_starts(truth, centre, s.count, s.min_deg, s.max_deg,
+                                                s.shift_m * loaded.dataparser_scale, self.config.seed)
+        if s.source == "sphere-shell":
+            radius = s.range_m if s.range_m is not None else float(np.linalg.norm(first_truth[:3, 3] - target))
+            poses = starts.sphere_shell(s.count, radius, target, rng)
+        elif s.source == "volume":
+            poses = starts.volume(s.count, s.max_range_m, s.min_range_m, target, rng)
+        else:
+            poses = starts.training_views(self._training_transforms(loaded), s.count, rng)
+        return torch.as_tensor(loaded.dataset_to_model(poses), dtype=torch.float32)
+
+    @staticmethod
+    def _training_transforms(loaded: LoadedModel) -> Path:
+        datamanager = loaded.config.pipeline.datamanager
+        data = datamanager.data or datamanager.dataparser.data
+        for name in ("transforms_train.json", "transforms.json"):
+            if data is not None and (Path(data) / name).is_file():
+                return Path(data) / name
+        raise InversionError(f"training-views starts need the model's training data, but no transforms_train.json "
+                             f"or transforms.json is in '{data}' (config.yml's data path, relative to where "
+                             "ns-train ran): run from there, or use --starts.source sphere-shell")
+
+    def _frame_number(self, k: int) -> int:
+        """Position in the whole sequence of the ``k``-th frame used."""
+        return self.config.start + k * self.config.stride
+
+    @staticmethod
+    def _step_row(record: StepRecord, index: int, frame: int, step: int, wall: float) -> dict:
+        history = record.result.history
+        row = {"index": index, "frame": frame, "step": step, "wall_time_s": wall, "candidates": record.candidates,
+               "kept": record.kept, "dropped": record.result.dropped, "loss": record.loss,
+               "best_loss_per_iteration": [float(np.min(h["loss"])) for h in history]}
+        if history and "error_deg" in history[0]:
+            row["best_error_deg_per_iteration"] = [float(np.min(h["error_deg"])) for h in history]
+            row["error_of_best_loss_per_iteration"] = [float(h["error_deg"][np.argmin(h["loss"])]) for h in history]
+        return row
+
+    def _frame_row(self, loaded: LoadedModel, record: StepRecord, sequence: Sequence, k: int, wall: float,
+                   elapsed: float) -> dict:
+        estimate_model = record.estimate.double().numpy()
+        q, r = dataset_pose_to_label(loaded.model_to_dataset(estimate_model))
+        row = {"index": k, "frame": self._frame_number(k), "name": sequence.frames[k].name,
+               "steps": self.config.steps_per_frame, "wall_time_s": wall, "elapsed_s": elapsed, "q": q, "r": r,
+               "c2w_model": estimate_model.tolist(), "loss": record.loss, "candidates": record.candidates,
+               "dropped": len(record.result.dropped), "rotation_deg": None, "translation_m": None,
+               "translation_rel": None, "score": None}
+        truth = sequence.frames[k].c2w_true
+        if truth is not None:
+            q_true, r_true = dataset_pose_to_label(truth)
+            error = label_error(np.array(q), np.array(r), np.array(q_true), np.array(r_true),
+                                hil="lightbox" in str(self.config.sequence))
+            row |= {"rotation_deg": error.rotation_deg, "translation_m": error.translation_m,
+                    "translation_rel": error.translation_rel, "score": error.score}
+        return row
+
+    def summary(self, rows: list[dict], total_frames: int, loaded: LoadedModel, sequence: Sequence) -> dict:
+        return {"run": str(self.folder.path), "model": str(self.config.load_config), "model_step": loaded.step,
+                "sequence": str(self.config.sequence), "sequence_format": sequence.kind,
+                "frames_total": total_frames, "complete": len(rows) == total_frames,
+                "device": str(loaded.device), **summarize(rows)}

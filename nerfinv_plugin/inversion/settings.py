@@ -1,0 +1,215 @@
+"""Everything an ``ns-invert`` run is configured by, as dataclasses (tyro builds the command line from them,
+with each field's docstring as its help), and their round trip through YAML: the ``config.yml`` written
+into every run folder, and the presets in ``configs/`` (partial YAML files of the same shape)."""
+
+import dataclasses
+import sys
+import types
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
+
+import yaml
+
+from nerfinv_plugin.inversion.optimizer import OptimizerConfig
+from nerfinv_plugin.inversion.sampling import Strategy
+from nerfinv_plugin.inversion.tracker import MonteCarloConfig
+from nerfinv_plugin.model.loading import Device
+
+
+class SettingsError(Exception):
+    """A preset or saved config that cannot be used; the message says which key and why."""
+
+
+@dataclass
+class StartConfig:
+    """Where the candidates of the first Monte Carlo step come from (dataset frame, metres)."""
+
+    source: Literal["training-views", "sphere-shell", "volume", "truth-offset"] = "sphere-shell"
+    """training-views: poses of the model's training images (the thesis' default; needs the training data
+    where config.yml says it is); sphere-shell: cameras at one range looking at the target, random roll
+    (the thesis' SHIRT sampling); volume: cameras anywhere between min-range-m and max-range-m (the thesis'
+    SPEED+ sampling); truth-offset: turned 'min-deg' to 'max-deg' away from the first frame's true pose and
+    shifted by 'shift-m' (iNeRF's evaluation protocol; needs ground truth)."""
+    count: int = 15
+    """Number of starting candidates."""
+    range_m: float | None = None
+    """sphere-shell radius. Unset: the true range of the first frame (needs ground truth)."""
+    min_range_m: float = 2.0
+    """volume: nearest camera distance from the target."""
+    max_range_m: float = 9.0
+    """volume: farthest camera distance from the target (the thesis' SPEED+ case: 9 m)."""
+    min_deg: float = 15.0
+    """truth-offset: smallest rotation away from the truth (about a random axis through the target)."""
+    max_deg: float = 20.0
+    """truth-offset: largest rotation away from the truth."""
+    shift_m: float = 0.25
+    """truth-offset: distance each start is moved in a random direction."""
+
+
+@dataclass
+class InvertConfig:
+    """Estimate the pose of a known object in every frame of an image sequence by inverting a trained
+    nerfstudio model: parallel iNeRF with Monte Carlo resampling, the observed image advancing to the next
+    frame at every resampling step. Results are written as each frame finishes, so an interrupted run
+    keeps them and continues with --resume."""
+
+    load_config: Path | None = None
+    """config.yml of the trained nerfstudio run (outputs/<experiment>/<method>/<timestamp>/config.yml).
+    Required unless --resume is given."""
+    sequence: str | None = None
+    """The observed images: a SHIRT trajectory (root/roeN or root/roeN/lightbox), a Blender split
+    (path/to/scene:test) or a folder of images with camera.json (and optionally poses.json). Required
+    unless --resume is given."""
+    preset: str | None = None
+    """Settings file from configs/ (by name, such as shirt-synthetic, or by path); options given on the
+    command line override it."""
+    resume: Path | None = None
+    """Continue the interrupted run in this folder with the settings it was started with."""
+    name: str | None = None
+    """Experiment name: results go to <output-dir>/<name>/nerfinv/<timestamp>/. Default: the sequence's."""
+    output_dir: Path = Path("outputs")
+    """Root of the results folders."""
+    timestamp: str | None = None
+    """Run folder name. Default: the current time, as ns-train does."""
+    start: int = 0
+    """First frame of the sequence to use."""
+    stop: int | None = None
+    """Frame to stop before (Python slice semantics). Default: the end of the sequence."""
+    stride: int = 1
+    """Use every stride-th frame."""
+    resolution: tuple[int, int] | None = None
+    """Working resolution WIDTH HEIGHT: images are resized and the intrinsics scaled to match (the thesis
+    used 100 100 and 240 150). Default: the images' own size."""
+    camera: Path | None = None
+    """camera.json to use instead of the one found beside the sequence."""
+    device: Device = "auto"
+    """Where to render: cuda when available under auto."""
+    seed: int = 0
+    """Seeds starting poses, pixel draws and spawned candidates: same seed, same numbers on the CPU."""
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Target centre in the dataset frame (metres): starts look at it, and screw motions and spawned copies
+    turn about it. SHIRT and SPEED+ put the body origin there."""
+    starts: StartConfig = field(default_factory=StartConfig)
+    steps_per_frame: int = 1
+    """Monte Carlo steps spent on each frame before moving to the next (1: the thesis' trajectory method)."""
+    sampling: Strategy = "interest_region"
+    """Which pixels are rendered: random, interest_point (SIFT keypoints) or interest_region (5x5 around
+    them, the thesis' best)."""
+    pixels: int = 256
+    """Pixels rendered per candidate and iteration."""
+    eval_pixels: int = 1024
+    """Fixed random pixels per frame on which candidates are ranked."""
+    optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
+    monte_carlo: MonteCarloConfig = field(default_factory=MonteCarloConfig)
+
+
+def to_dict(config: Any) -> dict:
+    """Plain YAML-safe data (paths as strings, tuples as lists)."""
+    def plain(value: Any) -> Any:
+        if isinstance(value, Path):
+            return str(value)
+        if isinstance(value, (tuple, list)):
+            return [plain(v) for v in value]
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        return value
+    return plain(dataclasses.asdict(config))
+
+
+def _convert(hint: Any, value: Any, key: str) -> Any:
+    """``value`` read from YAML as the type ``hint`` expects, checking Literal choices."""
+    origin, args = get_origin(hint), get_args(hint)
+    if origin in (Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        return _convert(next(a for a in args if a is not type(None)), value, key)
+    if origin is Literal:
+        if value not in args:
+            raise SettingsError(f"{key} must be one of {', '.join(map(str, args))}, not {value!r}")
+        return value
+    if hint is Path:
+        return Path(value)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise SettingsError(f"{key} must be a list, not {value!r}")
+        if args[-1] is Ellipsis:
+            return tuple(_convert(args[0], v, key) for v in value)
+        if len(value) != len(args):
+            raise SettingsError(f"{key} needs {len(args)} values, not {len(value)}")
+        return tuple(_convert(a, v, key) for a, v in zip(args, value))
+    if hint is float and isinstance(value, int):
+        return float(value)
+    return value
+
+
+def updated(config: Any, data: dict, where: str, prefix: str = "") -> Any:
+    """A copy of the dataclass ``config`` with the (nested) values of ``data`` replacing its fields."""
+    if not isinstance(data, dict):
+        raise SettingsError(f"{where}: expected a mapping of option names for '{prefix or 'the top level'}'")
+    hints = get_type_hints(type(config))
+    changes = {}
+    for key, value in data.items():
+        name = key.replace("-", "_")
+        if name not in hints:
+            raise SettingsError(f"{where}: unknown option '{prefix}{key}' (see ns-invert --help)")
+        current = getattr(config, name)
+        if dataclasses.is_dataclass(current):
+            changes[name] = updated(current, value or {}, where, f"{prefix}{key}.")
+        else:
+            changes[name] = _convert(hints[name], value, f"{where}: {prefix}{key}")
+    return dataclasses.replace(config, **changes)
+
+
+def read_yaml(path: Path) -> dict:
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise SettingsError(f"cannot read settings file {path}: {err}".splitlines()[0]) from err
+    return data or {}
+
+
+def presets_dir() -> Path:
+    """The repository's ``configs/`` folder (the package is installed in editable mode, as the README says)."""
+    return Path(__file__).resolve().parents[2] / "configs"
+
+
+def preset_path(name: str) -> Path:
+    """A preset by path, or by name in ``configs/``."""
+    path = Path(name)
+    if path.is_file():
+        return path
+    candidate = presets_dir() / f"{name}.yml"
+    if candidate.is_file():
+        return candidate
+    known = sorted(p.stem for p in presets_dir().glob("*.yml"))
+    raise SettingsError(f"no preset '{name}': give a YAML file or one of {', '.join(known) or '(none found)'}")
+
+
+def preset_from_argv(argv: list[str]) -> str | None:
+    """The value of ``--preset`` on a command line, read before tyro parses the rest (the preset decides
+    the defaults that tyro shows and fills in)."""
+    for i, arg in enumerate(argv):
+        if arg == "--preset" and i + 1 < len(argv):
+            return argv[i + 1]
+        if arg.startswith("--preset="):
+            return arg.split("=", 1)[1]
+    return None
+
+
+def defaults_with_preset(argv: list[str] | None = None) -> InvertConfig:
+    """Default settings, with the preset named on the command line applied."""
+    name = preset_from_argv(sys.argv[1:] if argv is None else argv)
+    config = InvertConfig()
+    if name is None:
+        return config
+    path = preset_path(name)
+    return dataclasses.replace(updated(config, read_yaml(path), str(path)), preset=name)
+
+
+def write_config(path: Path, config: InvertConfig) -> None:
+    path.write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+
+
+def read_config(path: Path) -> InvertConfig:
+    return updated(InvertConfig(), read_yaml(path), str(path))
