@@ -69,32 +69,33 @@ class DemoSettings:
             optimizer=OptimizerConfig(iterations=self.iterations), monte_carlo=MonteCarloConfig(keep=(3, 1), spawn=2))
 
 
-def render_data(settings: DemoSettings, step: Callable[[], None]) -> bool:
-    """Render the training set and the trajectory unless done; True when it rendered."""
-    if (settings.data_dir / DONE).is_file():
-        return False
+def data_rendered(settings: DemoSettings) -> bool:
+    return (settings.data_dir / DONE).is_file()
+
+
+def model_trained(settings: DemoSettings) -> bool:
+    return (settings.model_config.parent / DONE).is_file()
+
+
+def inversion_finished(settings: DemoSettings) -> bool:
+    return (settings.run_dir / SUMMARY).is_file()
+
+
+def render_data(settings: DemoSettings, step: Callable[[], None]) -> None:
+    """Render the training set and the trajectory, then mark the data complete."""
     spec = settings.training_set
     write_training_set(settings.data_dir, "tango", spec, settings.seed, 64, step)
     camera = speedplus_like_camera(spec.width, spec.height)
     write_shirt_trajectories(settings.data_dir, "tango", [TrajectorySpec(kind="roe1", num_frames=settings.frames)],
                              camera, False, settings.seed, 64, step)
     (settings.data_dir / DONE).write_text("rendered\n")
-    return True
 
 
-def train_model(settings: DemoSettings) -> bool:
-    """Train nerfacto-tiny unless a finished run is there; True when it trained."""
-    done = settings.model_config.parent / DONE
-    if done.is_file():
-        return False
+def train_model(settings: DemoSettings, on_iteration: Callable[[int], None] | None = None) -> None:
+    """Train nerfacto-tiny, then mark the run complete."""
     from nerfinv_plugin.model.training import train_nerfacto_tiny
 
     config = train_nerfacto_tiny(settings.data_dir, settings.output_dir, EXPERIMENT, settings.training_iterations,
-                                 timestamp=TIMESTAMP)
+                                 timestamp=TIMESTAMP, on_iteration=on_iteration)
     assert config == settings.model_config, (config, settings.model_config)
-    done.write_text("trained\n")
-    return True
-
-
-def inversion_finished(settings: DemoSettings) -> bool:
-    return (settings.run_dir / SUMMARY).is_file()
+    (settings.model_config.parent / DONE).write_text("trained\n")

@@ -172,6 +172,19 @@ def _not_a_config(tmp_path: Path) -> Path:
     return tmp_path / "config.yml"
 
 
+def _unreadable_config(tmp_path: Path) -> Path:
+    (tmp_path / "config.yml").write_text("!!python/object:nerfstudio.engine.trainer.TrainerConfig\n  a: [\n")
+    return tmp_path / "config.yml"
+
+
+def _folder_without_poses(shirt: Path, tmp_path: Path) -> Path:
+    """The trajectory's images and camera.json in a plain folder: no ground truth."""
+    folder = tmp_path / "images"
+    shutil.copytree(shirt / "roe1" / "synthetic" / "images", folder)
+    shutil.copy(shirt / "camera.json", folder)
+    return folder
+
+
 def _no_checkpoint(toy_run, tmp_path: Path) -> Path:
     shutil.copy(toy_run[0], tmp_path / "config.yml")
     return tmp_path / "config.yml"
@@ -199,8 +212,9 @@ BAD_INPUTS = {
     "image missing": (lambda run, shirt, tmp: (run[0], _missing_image(shirt, tmp) / "roe1", []), "img000002.jpg"),
     "size mismatch": (lambda run, shirt, tmp: (run[0], _wrong_size(shirt, tmp) / "roe1", []), "160"),
     "empty sequence": (lambda run, shirt, tmp: (run[0], shirt / "roe1", ["--start", "10"]), "4 frames"),
-    "truth needed": (lambda run, shirt, tmp: (run[0], shirt / "roe1", ["--starts.source", "truth-offset",
-                                                                        "--camera", str(tmp)]), "camera"),
+    "config unreadable": (lambda run, shirt, tmp: (_unreadable_config(tmp), shirt / "roe1", []), "config.yml"),
+    "truth needed": (lambda run, shirt, tmp: (run[0], _folder_without_poses(shirt, tmp),
+                                              ["--starts.source", "truth-offset"]), "true pose"),
 }
 
 

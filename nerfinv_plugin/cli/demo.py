@@ -9,7 +9,14 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from nerfinv_plugin.cli import run
 from nerfinv_plugin.cli.invert import BAD_INPUT, invert
-from nerfinv_plugin.demo import DemoSettings, inversion_finished, render_data, train_model
+from nerfinv_plugin.demo import (
+    DemoSettings,
+    data_rendered,
+    inversion_finished,
+    model_trained,
+    render_data,
+    train_model,
+)
 from nerfinv_plugin.report.results import CONFIG
 
 
@@ -17,7 +24,7 @@ from nerfinv_plugin.report.results import CONFIG
 class Demo(DemoSettings):
     """Render the synthetic spacecraft (a NeRF training set and a 'roe1' trajectory in the SHIRT format),
     train nerfacto-tiny on it, and estimate the pose in every frame of the trajectory with ns-invert. About
-    12 minutes on a 2-core CPU the first time; a second run reuses every finished stage (an interrupted
+    10 minutes on a 2-core CPU the first time; a second run reuses every finished stage (an interrupted
     inversion continues where it stopped)."""
 
     def main(self) -> None:
@@ -26,13 +33,18 @@ class Demo(DemoSettings):
         spec = s.training_set
         total = spec.train_views + spec.val_views + spec.test_views + s.frames
         columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-        with Progress(*columns, console=console) as progress:
-            task = progress.add_task("1/3 rendering the synthetic spacecraft", total=total)
-            rendered = render_data(s, lambda: progress.advance(task))
-        console.print(f"1/3 data in {s.data_dir}" + ("" if rendered else " (already rendered)"))
-        console.print("2/3 training nerfacto-tiny on the CPU ...")
-        trained = train_model(s)
-        console.print(f"2/3 model {s.model_config}" + ("" if trained else " (already trained)"))
+        if data_rendered(s):
+            console.print(f"1/3 data in {s.data_dir} (already rendered)")
+        else:
+            with Progress(*columns, console=console) as progress:
+                task = progress.add_task("1/3 rendering the synthetic spacecraft", total=total)
+                render_data(s, lambda: progress.advance(task))
+        if model_trained(s):
+            console.print(f"2/3 model {s.model_config} (already trained)")
+        else:
+            with Progress(*columns, console=console) as progress:
+                task = progress.add_task("2/3 training nerfacto-tiny on the CPU", total=s.training_iterations)
+                train_model(s, lambda step: progress.update(task, completed=step + 1))
         if inversion_finished(s):
             console.print(f"3/3 inversion already finished: {s.run_dir}")
         else:

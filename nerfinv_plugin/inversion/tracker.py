@@ -99,12 +99,14 @@ class TrackerState:
     last_loss: float = float("inf")
     previous_estimate: Tensor | None = None
     """Estimate of the frame before ``last_frame``, for the motion prior."""
+    eval_pixels: Tensor | None = None
+    """The ranking pixels of ``last_frame``: steps on one frame rank on the same pixels."""
 
     def state_dict(self) -> dict:
         return {"step": self.step, "candidates": self.candidates, "rng": self.rng.bit_generator.state,
                 "generator": self.generator.get_state(), "last_frame": self.last_frame,
                 "last_estimate": self.last_estimate, "last_loss": self.last_loss,
-                "previous_estimate": self.previous_estimate}
+                "previous_estimate": self.previous_estimate, "eval_pixels": self.eval_pixels}
 
     @classmethod
     def from_state_dict(cls, state: dict) -> "TrackerState":
@@ -113,7 +115,7 @@ class TrackerState:
         generator = torch.Generator()
         generator.set_state(state["generator"])
         return cls(state["step"], state["candidates"], rng, generator, state["last_frame"], state["last_estimate"],
-                   state["last_loss"], state["previous_estimate"])
+                   state["last_loss"], state["previous_estimate"], state["eval_pixels"])
 
 
 @dataclass
@@ -145,8 +147,12 @@ class Tracker:
         the previous estimate, so the best loss of a frame never increases."""
         mc = self.monte_carlo
         sampler = PixelSampler(self.sampling, self.pixels).prepare(frame.image)
-        eval_pixels = torch.as_tensor(
-            PixelSampler("random", self.eval_pixels).prepare(frame.image).sample(state.rng))
+        same_frame = state.last_frame == frame_index
+        if same_frame:
+            eval_pixels = state.eval_pixels
+        else:
+            eval_pixels = torch.as_tensor(
+                PixelSampler("random", self.eval_pixels).prepare(frame.image).sample(state.rng))
         observed = torch.as_tensor(frame.image, dtype=torch.float32, device=self.loaded.device) / 255.0
         optimizer = self.optimizer if mc.reset_lr or state.step == 0 else _decayed(self.optimizer, state.step)
         error_fn = None
@@ -161,7 +167,6 @@ class Tracker:
         order = torch.argsort(result.losses)
         best = result.c2w[order[0]].cpu()
         best_loss = float(result.losses[order[0]])
-        same_frame = state.last_frame == frame_index
         if same_frame and state.last_loss <= best_loss:
             best, best_loss = state.last_estimate, state.last_loss
         kept_count = keep_count(mc, state.step, alive)
@@ -176,6 +181,7 @@ class Tracker:
         state.step += 1
         state.candidates = torch.cat([kept, spawned])
         state.last_frame, state.last_estimate, state.last_loss = frame_index, best, best_loss
+        state.eval_pixels = eval_pixels
         return record
 
     def run(self, frames: Sequence[Frame], start: Tensor, steps: int | None = None,

@@ -5,14 +5,19 @@ lets a caller put its own limits (iterations, rays) on the stock configuration.
 """
 
 import copy
+from collections.abc import Callable
 from pathlib import Path
+
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
 from nerfinv_plugin.model.nerfacto_tiny import nerfacto_tiny
 
 
 def train_nerfacto_tiny(data: Path, output_dir: Path, experiment_name: str, iterations: int,
-                        rays_per_batch: int = 512, timestamp: str = "run") -> Path:
-    """Train on a Blender-format dataset and return the ``config.yml`` of the run.
+                        rays_per_batch: int = 512, timestamp: str = "run",
+                        on_iteration: Callable[[int], None] | None = None) -> Path:
+    """Train on a Blender-format dataset and return the ``config.yml`` of the run. ``on_iteration(step)``
+    is called after every training iteration (progress bars).
 
     Call it under ``if __name__ == "__main__":`` in scripts: nerfstudio may start worker processes with
     the ``spawn`` method, which re-imports the calling module (nerfacto-tiny itself starts none).
@@ -31,5 +36,8 @@ def train_nerfacto_tiny(data: Path, output_dir: Path, experiment_name: str, iter
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
+    if on_iteration is not None:
+        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                                                  lambda step: on_iteration(step), update_every_num_iters=1))
     trainer.train()
     return config.get_base_dir() / "config.yml"
