@@ -6,6 +6,7 @@ training settings, the source of the code that renders and trains, and the versi
 and mitsuba. Change any of them and the fixture trains afresh; delete the folder to force it.
 """
 
+import fcntl
 import hashlib
 import json
 import os
@@ -61,9 +62,13 @@ def toy_run() -> tuple[Path, Path]:
     """``(config.yml, data folder)`` of nerfacto-tiny trained on the toy scene, cached across sessions."""
     folder = cache_root() / f"toy-{cache_key(TOY_SCENE, TOY_TRAINING)}"
     config = folder / "outputs" / "toy" / "nerfacto-tiny" / "fixture" / "config.yml"
-    if not (folder / "complete").is_file():
-        shutil.rmtree(folder, ignore_errors=True)
-        folder.mkdir(parents=True)
-        assert _build_toy_run(folder) == config
-        (folder / "complete").write_text("trained\n")
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    # Test sessions running side by side must not build (and delete) the same folder at once.
+    with open(folder.parent / f"{folder.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (folder / "complete").is_file():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir(parents=True)
+            assert _build_toy_run(folder) == config
+            (folder / "complete").write_text("trained\n")
     return config, folder / "data"

@@ -84,7 +84,9 @@ def test_cli_end_to_end_writes_results_that_track_the_target(toy_run, shirt, tmp
     assert read_config(run / "config.yml") == _config(toy_run, shirt, tmp_path, stop=3, device="cpu")
     steps = [json.loads(line) for line in (run / "steps.jsonl").read_text().splitlines()]
     assert len(steps) == 3 and len(steps[0]["best_loss_per_iteration"]) == 25
-    assert "frame 2 (img000003.jpg): rotation" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "frame 2 (img000003.jpg): rotation" in out
+    assert (run / "report.html").is_file() and (run / "report" / "overlays.png").is_file() and "report:" in out
 
 
 def test_estimate_in_the_dataset_frame_matches_the_model_frame_pose(toy_run, shirt, tmp_path):

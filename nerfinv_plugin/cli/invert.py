@@ -13,6 +13,7 @@ from nerfinv_plugin.data.sequences import SequenceError
 from nerfinv_plugin.inversion.session import Events, Inversion, InversionError
 from nerfinv_plugin.inversion.settings import InvertConfig, SettingsError, defaults_with_preset
 from nerfinv_plugin.model.loaded import ModelLoadError
+from nerfinv_plugin.report.build import write_report
 
 BAD_INPUT = (ModelLoadError, SequenceError, SettingsError, InversionError, FloatingPointError)
 """Errors that mean the input or the settings are wrong: one line and exit code 2, no traceback."""
@@ -72,6 +73,9 @@ def invert(config: InvertConfig, console: Console) -> dict:
                               f"Continue with: ns-invert --resume {inversion.folder.path}") from None
     for line in _summary_lines(summary):
         console.print(f"[bold]{line}[/bold]")
+    page = write_report(inversion.folder.path, overlays=True, device=inversion.config.device,
+                        warn=lambda message: console.print(f"[yellow]{escape(message)}[/yellow]"))
+    console.print(f"report: {page}")
     return summary
 
 

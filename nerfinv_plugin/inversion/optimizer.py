@@ -74,7 +74,7 @@ def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, p
     with torch.set_grad_enabled(backward):
         for part, out in render_chunks(loaded, c2w, intrinsics, pixels):
             per_ray = per_ray_loss(loss, out.rgb, targets[part]) / p
-            if backward:
+            if backward and per_ray.requires_grad:  # rays that missed the target carry no gradient
                 # Non-finite rays must not poison the others' gradients; their candidates get dropped.
                 torch.where(torch.isfinite(per_ray), per_ray, 0.0).sum().backward()
             totals.index_add_(0, candidate_of_ray[part], per_ray.detach())

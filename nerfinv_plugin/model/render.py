@@ -107,10 +107,72 @@ def ray_bundle(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels:
     return bundle
 
 
+MIN_NEAR = 0.05
+"""Nearest sample distance (model units) when a sphere bounds the rays: a camera inside the sphere must
+not sample its own lens."""
+
+
+def bound_to_target(loaded: LoadedModel, bundle) -> Tensor | None:
+    """Limit each ray's samples to where it crosses ``loaded.target_sphere`` (setting the bundle's nears
+    and fars, which nerfstudio's colliders then leave alone) and return the mask of rays that cross it;
+    ``None`` when no sphere is set. The same number of samples then covers the target's depth, not the
+    whole scene's, so fewer samples give the same image. The depths are not differentiated (nerfacto's
+    sample depths are detached too); gradients reach the pose through the ray origins and directions."""
+    if loaded.target_sphere is None:
+        return None
+    centre, radius = loaded.target_sphere
+    with torch.no_grad():
+        origins, directions = bundle.origins, bundle.directions
+        along = ((centre.to(origins) - origins) * directions).sum(-1, keepdim=True)
+        closest2 = ((centre.to(origins) - origins) ** 2).sum(-1, keepdim=True) - along**2
+        half = torch.sqrt(torch.clamp(radius**2 - closest2, min=0.0))
+        hits = (closest2 < radius**2) & (along + half > MIN_NEAR)
+        bundle.nears = torch.clamp(along - half, min=MIN_NEAR)
+        bundle.fars = torch.maximum(along + half, bundle.nears + 1e-4)
+    return hits[:, 0]
+
+
+def background_colour(loaded: LoadedModel) -> Tensor | None:
+    """The colour a ray that meets nothing renders to, when the model makes it a constant: nerfacto and
+    friends render 'random' and 'black' as black in eval mode. ``None`` when it depends on the ray."""
+    renderer = getattr(loaded.model, "renderer_rgb", None)
+    colour = getattr(renderer, "background_color", None)
+    if isinstance(colour, Tensor):
+        return colour.to(loaded.device, torch.float32)
+    if colour in ("random", "black"):
+        return torch.zeros(3, device=loaded.device)
+    if colour == "white":
+        return torch.ones(3, device=loaded.device)
+    return None
+
+
+def set_sample_counts(loaded: LoadedModel, proposal: tuple[int, ...] | None, nerf: int | None) -> None:
+    """Change how many samples a proposal-sampled model (nerfacto and its kin) takes per ray at render
+    time: with rays bounded to the target, a fraction of the training counts covers the same depth."""
+    sampler = getattr(loaded.model, "proposal_sampler", None)
+    if sampler is None:
+        raise ModelLoadError(f"{type(loaded.model).__name__} has no proposal sampler: its sample counts cannot be "
+                             "changed; leave --render.proposal-samples and --render.nerf-samples unset")
+    if proposal is not None:
+        if len(proposal) != len(sampler.num_proposal_samples_per_ray):
+            raise ModelLoadError(f"this model has {len(sampler.num_proposal_samples_per_ray)} proposal levels; "
+                                 f"--render.proposal-samples got {len(proposal)} numbers")
+        sampler.num_proposal_samples_per_ray = tuple(proposal)
+    if nerf is not None:
+        sampler.num_nerf_samples_per_ray = nerf
+    check_renders(loaded)  # the chunk size follows the memory a ray now takes
+
+
+Rays = slice | Tensor
+"""Which of the N * P flat rays a chunk holds: a slice, or indices when rays were skipped."""
+
+
 def render_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
-                  chunk_rays: int | None = None) -> Iterator[tuple[slice, RenderOutput]]:
+                  chunk_rays: int | None = None) -> Iterator[tuple[Rays, RenderOutput]]:
     """Render ``ray_bundle(...)`` in chunks of at most ``chunk_rays`` rays (default: the model's memory
-    budget). Yields ``(slice into the N * P flat rays, outputs for that slice)``; every ray is rendered."""
+    budget). Yields ``(rays, outputs for them)``, ``rays`` indexing the N * P flat rays; every ray is
+    accounted for. With a target sphere set, the rays that miss it come last, as one chunk of background
+    colour that does not depend on the pose."""
     if chunk_rays is None:
         chunk_rays = loaded.chunk_rays or check_renders(loaded)
     if chunk_rays < 1:
@@ -119,14 +181,28 @@ def render_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixe
         yield from _splat_chunks(loaded, c2w, intrinsics, pixels)
         return
     bundle = ray_bundle(loaded, c2w.to(loaded.device), intrinsics, pixels)
-    total = len(bundle)
-    for start in range(0, total, chunk_rays):
-        part = slice(start, min(start + chunk_rays, total))
+    hits = bound_to_target(loaded, bundle)
+    background = background_colour(loaded)
+    if hits is None or background is None or bool(hits.all()):
+        order: Tensor | None = None
+        rendered = len(bundle)
+    else:
+        order = torch.cat([torch.nonzero(hits).flatten(), torch.nonzero(~hits).flatten()])
+        rendered = int(hits.sum())
+        bundle = bundle[order]
+    for start in range(0, rendered, chunk_rays):
+        part = slice(start, min(start + chunk_rays, rendered))
         outputs = loaded.model(bundle[part])
         rgb = _pick(outputs, "rgb")
         if rgb is None:
             raise RuntimeError(f"{type(loaded.model).__name__} returned no rgb output (keys: {sorted(outputs)})")
-        yield part, RenderOutput(rgb, _pick(outputs, "accumulation"), _pick(outputs, "depth"))
+        yield (part if order is None else order[part]), RenderOutput(rgb, _pick(outputs, "accumulation"),
+                                                                     _pick(outputs, "depth"))
+    if order is not None and rendered < len(order):
+        missed = order[rendered:]
+        count = len(missed)
+        yield missed, RenderOutput(background.expand(count, 3), torch.zeros(count, 1, device=loaded.device),
+                                   torch.full((count, 1), float("inf"), device=loaded.device))
 
 
 def _splat_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics,
@@ -150,13 +226,18 @@ def render(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Ten
     """Colours (and accumulation and depth where the model has them) of ``pixels`` [P, 2] (row, col) from
     every pose in ``c2w`` [N, 3|4, 4]: ``rgb`` is [N, P, 3]. Differentiable with respect to ``c2w``."""
     n, p = as_3x4(c2w).shape[0], pixels.shape[0]
-    parts = [out for _, out in render_chunks(loaded, c2w, intrinsics, pixels, chunk_rays)]
+    parts = list(render_chunks(loaded, c2w, intrinsics, pixels, chunk_rays))
 
     def join(field: str, channels: int) -> Tensor | None:
-        values = [getattr(out, field) for out in parts]
+        values = [getattr(out, field) for _, out in parts]
         if any(v is None for v in values):
             return None
-        return torch.cat(values).reshape(n, p, channels)
+        if all(isinstance(rays, slice) for rays, _ in parts):
+            return torch.cat(values).reshape(n, p, channels)
+        index = torch.cat([torch.arange(n * p, device=loaded.device)[rays] if isinstance(rays, slice) else rays
+                           for rays, _ in parts])
+        joined = torch.cat(values)
+        return joined[torch.argsort(index)].reshape(n, p, channels)
 
     return RenderOutput(join("rgb", 3), join("accumulation", 1), join("depth", 1))
 

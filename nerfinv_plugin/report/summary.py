@@ -8,9 +8,26 @@ SUCCESS_REL = (0.01, 0.05, 0.1)
 """Translation-error thresholds, relative to the range (SPEC2021's e_t)."""
 
 
+def rotation_key(threshold_deg: float) -> str:
+    """Key of a rotation success rate in ``summary["success_rotation"]``, shared by every reader."""
+    return f"{threshold_deg:g}deg"
+
+
+def translation_key(threshold_rel: float) -> str:
+    """Key of a translation success rate in ``summary["success_translation"]``."""
+    return f"{threshold_rel:g}"
+
+
+def statistics(values: np.ndarray) -> dict[str, float]:
+    """The same four numbers for every error: the typical one, the worst, and where the run ended."""
+    return {"mean": float(values.mean()), "median": float(np.median(values)), "max": float(values.max()),
+            "final": float(values[-1])}
+
+
 def summarize(rows: list[dict]) -> dict:
     """Errors, success rates and timing over the frames done. Success rates count frames whose error is
-    under each threshold, out of the frames that have ground truth."""
+    under each threshold, out of the frames that have ground truth; frames without it count only for time
+    and loss, so a partly labelled sequence is scored on its labelled frames alone."""
     summary: dict = {"frames_done": len(rows)}
     if not rows:
         return summary
@@ -24,13 +41,11 @@ def summarize(rows: list[dict]) -> dict:
     rel = np.array([r["translation_rel"] for r in truth])
     summary |= {
         "frames_with_truth": len(truth),
-        "rotation_deg": {"mean": float(rot.mean()), "median": float(np.median(rot)), "max": float(rot.max()),
-                         "final": float(rot[-1])},
-        "translation_m": {"mean": float(np.mean([r["translation_m"] for r in truth])),
-                          "final": float(truth[-1]["translation_m"])},
-        "translation_rel": {"mean": float(rel.mean()), "median": float(np.median(rel))},
-        "score": {"mean": float(np.mean([r["score"] for r in truth]))},
-        "success_rotation": {f"{t:g}deg": float(np.mean(rot < t)) for t in SUCCESS_DEG},
-        "success_translation": {f"{t:g}": float(np.mean(rel < t)) for t in SUCCESS_REL},
+        "rotation_deg": statistics(rot),
+        "translation_m": statistics(np.array([r["translation_m"] for r in truth])),
+        "translation_rel": statistics(rel),
+        "score": statistics(np.array([r["score"] for r in truth])),
+        "success_rotation": {rotation_key(t): float(np.mean(rot < t)) for t in SUCCESS_DEG},
+        "success_translation": {translation_key(t): float(np.mean(rel < t)) for t in SUCCESS_REL},
     }
     return summary
