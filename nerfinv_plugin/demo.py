@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
-from nerfinv_plugin.inversion.settings import InvertConfig, StartConfig
+from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, StartConfig
 from nerfinv_plugin.inversion.tracker import MonteCarloConfig
 from nerfinv_plugin.model.loading import Device
 from nerfinv_plugin.report.results import SUMMARY
@@ -39,8 +39,8 @@ class DemoSettings:
     """Frames of the roe1 trajectory (the target spins 4 degrees between frames)."""
     training_iterations: int = 1100
     """nerfacto-tiny iterations of 512 rays (about 4.5 minutes on 2 cores)."""
-    iterations: int = 40
-    """Gradient iterations per Monte Carlo step of the inversion."""
+    iterations: int = 60
+    """Gradient iterations per Monte Carlo step of the inversion (the thesis' 60)."""
     device: Device = "auto"
     """Where to render during inversion."""
     seed: int = 0
@@ -61,11 +61,13 @@ class DemoSettings:
 
     def inversion(self) -> InvertConfig:
         """The inversion the demo runs: 8 candidates starting 15-20 degrees and 0.25 m off the first frame's
-        true pose (iNeRF's protocol: a search from scratch does not fit the time budget), keep 3 then 1."""
+        true pose (iNeRF's protocol: a search from scratch does not fit the time budget), keep 3 then 1,
+        rays bounded to 1 m about the body origin with a third of the trained sample counts."""
         return InvertConfig(
             load_config=self.model_config, sequence=str(self.trajectory), name=EXPERIMENT, timestamp=TIMESTAMP,
             output_dir=self.output_dir, device=self.device, seed=self.seed,
             starts=StartConfig(source="truth-offset", count=8, min_deg=15.0, max_deg=20.0, shift_m=0.25),
+            render=RenderConfig(target_radius_m=1.0, proposal_samples=(16, 8), nerf_samples=12),
             optimizer=OptimizerConfig(iterations=self.iterations), monte_carlo=MonteCarloConfig(keep=(3, 1), spawn=2))
 
 

@@ -11,7 +11,14 @@ from scipy.spatial.transform import Rotation
 from nerfinv_plugin.model.evaluate import psnr, read_rgb_over_black
 from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loading import load_model
-from nerfinv_plugin.model.render import Intrinsics, ray_bundle, render, render_image
+from nerfinv_plugin.model.render import (
+    Intrinsics,
+    bound_to_target,
+    ray_bundle,
+    render,
+    render_image,
+    set_sample_counts,
+)
 
 
 @pytest.fixture(scope="module")
@@ -180,3 +187,51 @@ def test_keep_gradients_patches_one_model_and_is_undone(toy):
     with pytest.raises(KeyError), keep_gradients(model):
         raise KeyError("leave by an exception")
     assert "get_outputs_for_camera_ray_bundle" not in vars(model) and not outputs().requires_grad
+
+
+def test_rays_bounded_to_a_target_sphere_render_as_sharp_with_a_third_of_the_samples(toy, monkeypatch):
+    loaded, data = toy
+    c2w_data, intrinsics, file_path = _view(data, "train", 0)
+    observed = read_rgb_over_black(data / (file_path[2:] + ".png"))
+    c2w = loaded.dataset_to_model(c2w_data)
+    full = psnr(render_image(loaded, c2w, intrinsics), observed)
+    centre = torch.as_tensor(loaded.dataset_to_model(np.eye(4))[:3, 3], dtype=torch.float32)
+    sampler = loaded.model.proposal_sampler
+    trained = (sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray)
+    rendered_rays = []
+    forward = loaded.model.forward
+
+    def counting(bundle):
+        rendered_rays.append(len(bundle))
+        return forward(bundle)
+
+    try:
+        loaded.target_sphere = (centre, 1.0 * loaded.dataparser_scale)
+        set_sample_counts(loaded, (16, 8), 12)
+        monkeypatch.setattr(loaded.model, "forward", counting)
+        bounded = render_image(loaded, c2w, intrinsics)
+        image_rays = sum(rendered_rays)
+        rows, cols = np.meshgrid(np.arange(intrinsics.height), np.arange(intrinsics.width), indexing="ij")
+        everywhere = torch.as_tensor(np.stack([rows.ravel(), cols.ravel()], 1))
+        hits = bound_to_target(loaded, ray_bundle(loaded, torch.as_tensor(c2w[None], dtype=torch.float32),
+                                                  intrinsics, everywhere)).reshape(rows.shape).numpy()
+        # The camera looks at the sphere's centre from 5 m: the ray through the image centre crosses it
+        # from 4 m to 6 m (model units follow the dataparser scale).
+        middle = torch.tensor([[intrinsics.height // 2, intrinsics.width // 2]])
+        bundle = ray_bundle(loaded, torch.as_tensor(c2w[None], dtype=torch.float32), intrinsics, middle)
+        assert bool(bound_to_target(loaded, bundle)[0])
+        distance = float(np.linalg.norm(c2w[:3, 3] - centre.numpy()))
+        assert float(bundle.nears[0]) == pytest.approx(distance - loaded.dataparser_scale, abs=0.02)
+        assert float(bundle.fars[0]) == pytest.approx(distance + loaded.dataparser_scale, abs=0.02)
+        # Gradients still reach the pose through the bounded rays.
+        leaf = torch.as_tensor(c2w[None, :3], dtype=torch.float32).requires_grad_(True)
+        pixels = _object_pixels(loaded, c2w, intrinsics, 64)
+        target = torch.as_tensor(observed, dtype=torch.float32)[pixels[:, 0], pixels[:, 1]]
+        (render(loaded, leaf, intrinsics, pixels).rgb[0] - target).pow(2).mean().backward()
+        assert torch.isfinite(leaf.grad).all() and float(leaf.grad.abs().sum()) > 0
+    finally:
+        loaded.target_sphere = None
+        set_sample_counts(loaded, *trained)
+    assert 0 < hits.sum() < hits.size and image_rays == hits.sum()  # rays that miss the sphere: not rendered
+    assert np.all(bounded[~hits] == 0.0)  # but black, as the model renders empty space
+    assert psnr(bounded, observed) > full - 0.5, (psnr(bounded, observed), full)

@@ -159,3 +159,29 @@ def test_a_candidate_whose_loss_turns_nan_is_dropped_and_the_rest_go_on(toy_sequ
     assert torch.isinf(result.losses[1]) and torch.isfinite(result.losses[[0, 2]]).all()
     assert torch.isfinite(result.c2w[[0, 2]]).all()
     assert not torch.equal(result.c2w[0], start[0])  # the others kept optimizing
+
+
+def test_pruning_stops_far_candidates_and_patience_ends_a_step_early(toy_sequence):
+    loaded, frames, centre = toy_sequence
+    frame = frames[0]
+    near = _starts(frame.c2w_true, centre, 3, loaded.dataparser_scale, seed=5)
+    far = inerf_protocol_starts(frame.c2w_true, centre, 3, 70.0, 90.0, 0.0, seed=6)
+    start = torch.cat([near, far])
+    sampler = PixelSampler("interest_region", 64).prepare(frame.image)
+    eval_pixels = torch.as_tensor(PixelSampler("random", 128).prepare(frame.image).sample(np.random.default_rng(0)))
+    observed = torch.as_tensor(frame.image, dtype=torch.float32) / 255.0
+    config = OptimizerConfig(iterations=3, prune_every=2, prune_ratio=1.2)
+    result = optimize_candidates(loaded, start, observed, frame.intrinsics, sampler, eval_pixels, centre, config,
+                                 np.random.default_rng(0), min_candidates=2)
+    # Pruned after the second iteration: every candidate above 1.2 x that iteration's best, but the best two.
+    at_pruning = result.history[1]["loss"]
+    expected = {i for i in np.argsort(at_pruning)[2:] if at_pruning[i] > 1.2 * at_pruning.min()}
+    assert expected and set(result.pruned) == expected and not result.dropped
+    assert torch.isinf(result.losses[result.pruned]).all()
+    assert torch.isfinite(result.losses[[i for i in range(6) if i not in expected]]).all()
+    assert np.isinf(result.history[2]["loss"][result.pruned]).all()  # no longer rendered
+    # Patience: a demanded 90% improvement per iteration never comes, so the step ends after 1 + 2.
+    patient = OptimizerConfig(iterations=20, patience=2, min_improvement=0.9)
+    short = optimize_candidates(loaded, near, observed, frame.intrinsics, sampler, eval_pixels, centre, patient,
+                                np.random.default_rng(0))
+    assert len(short.history) == 3 and torch.isfinite(short.losses).all()

@@ -17,7 +17,14 @@ from nerfinv_plugin.model.fused_hash import stock_hash_encoding
 from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.loading import Device, ModelLoadError, load_model
-from nerfinv_plugin.model.render import Intrinsics, pinhole_cameras, render
+from nerfinv_plugin.model.render import (
+    Intrinsics,
+    bound_to_target,
+    pinhole_cameras,
+    ray_bundle,
+    render,
+    set_sample_counts,
+)
 from nerfinv_plugin.synth.datasets import speedplus_like_camera
 
 
@@ -70,6 +77,17 @@ class RenderBenchmark:
     """Where to render."""
     seed: int = 0
     """Seeds candidate poses and pixels."""
+    target_radius_m: float | None = 1.0
+    """Our way: rays sampled only within this radius (dataset units) of the dataset origin, as ns-invert's
+    --render.target-radius-m does. Unset: the model's near and far."""
+    proposal_samples: tuple[int, ...] | None = (16, 8)
+    """Our way: samples per ray of each proposal level (--render.proposal-samples). Unset: as trained."""
+    nerf_samples: int | None = 12
+    """Our way: samples per ray of the final field (--render.nerf-samples). Unset: as trained."""
+    on_target: bool = False
+    """Draw the pixels only where the first candidate's rays cross the target sphere (as interest-region
+    pixels on the object are), instead of anywhere in the image, where many rays miss it and cost ours
+    nothing."""
 
     def main(self) -> None:
         console = Console()
@@ -79,14 +97,35 @@ class RenderBenchmark:
         intrinsics = Intrinsics.from_opencv(camera.matrix, self.width, self.height)
         poses = loaded.dataset_to_model(sphere_shell(self.candidates, self.range_m, np.zeros(3), rng))
         c2w = torch.as_tensor(poses[:, :3], dtype=torch.float32, device=loaded.device)
-        flat = rng.choice(self.width * self.height, size=self.pixels, replace=False)
+        sphere = None if self.target_radius_m is None else \
+            (torch.as_tensor(loaded.dataset_to_model(np.eye(4))[:3, 3], dtype=torch.float32, device=loaded.device),
+             self.target_radius_m * loaded.dataparser_scale)
+        allowed = np.arange(self.width * self.height)
+        if self.on_target and sphere is not None:
+            loaded.target_sphere = sphere
+            everywhere = torch.as_tensor(np.stack([allowed // self.width, allowed % self.width], 1))
+            hits = bound_to_target(loaded, ray_bundle(loaded, c2w[:1], intrinsics, everywhere))
+            allowed = allowed[hits.cpu().numpy()]
+            loaded.target_sphere = None
+        flat = rng.choice(allowed, size=self.pixels, replace=False)
         pixels = torch.as_tensor(np.stack([flat // self.width, flat % self.width], 1), device=loaded.device)
         target = torch.zeros(self.pixels, 3, device=loaded.device)
         rays = self.candidates * self.pixels
 
+        sampler = getattr(loaded.model, "proposal_sampler", None)
+        trained = None if sampler is None else (sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray)
+
+        def our_settings(on: bool) -> None:
+            """Our inversion-time sampling on, or the model as trained (the thesis' way)."""
+            loaded.target_sphere = sphere if on else None
+            if trained is not None and (self.proposal_samples or self.nerf_samples):
+                proposal, nerf = (self.proposal_samples, self.nerf_samples) if on else trained
+                set_sample_counts(loaded, proposal, nerf)
+
         def timed(step, frozen: bool) -> tuple[float, torch.Tensor]:  # (seconds, what the step returns)
             leaf = c2w.clone().requires_grad_(True)
             loaded.model.requires_grad_(not frozen)
+            our_settings(frozen)
             try:
                 sync()
                 start = time.perf_counter()
@@ -103,6 +142,7 @@ class RenderBenchmark:
 
         _, rgb_thesis = timed(thesis_step, frozen=False)
         timed(batched_step, frozen=True)
+        our_settings(True)
         with torch.no_grad():
             rgb_ours = render(loaded, c2w, intrinsics, pixels).rgb
         thesis_times, our_times = [], []
@@ -110,15 +150,17 @@ class RenderBenchmark:
             thesis_times.append(timed(thesis_step, frozen=False)[0])
             our_times.append(timed(batched_step, frozen=True)[0])
         t_thesis, t_ours = statistics.median(thesis_times), statistics.median(our_times)
-        diff = float((rgb_thesis - rgb_ours).abs().max())
+        diff = (rgb_thesis - rgb_ours).detach().abs()
         console.print(f"model {loaded.config.method_name} step {loaded.step}, device {loaded.device}, "
                       f"{self.candidates} candidates x {self.pixels} pixels = {rays} rays, "
-                      f"chunk {loaded.chunk_rays} rays; max colour difference between the ways {diff:.2e}")
+                      f"chunk {loaded.chunk_rays} rays; ours: target radius {self.target_radius_m}, samples "
+                      f"{self.proposal_samples} / {self.nerf_samples}; colour difference between the ways: "
+                      f"mean {float(diff.mean()):.2e}, max {float(diff.max()):.2e}")
         console.print("| way | s / iteration (median) | rays / s (fwd+bwd) |\n|---|---|---|")
         console.print("| thesis: per-candidate get_outputs_for_camera_ray_bundle, stock hash forward, weights "
                       f"trainable | {t_thesis:.3f} | {rays / t_thesis:,.0f} |")
-        console.print(f"| nerfinv: one batched bundle, chunked, fused hash forward, frozen weights | {t_ours:.3f} | "
-                      f"{rays / t_ours:,.0f} |")
+        console.print("| nerfinv: one batched bundle, chunked, fused hash forward, frozen weights, bounded rays | "
+                      f"{t_ours:.3f} | {rays / t_ours:,.0f} |")
         console.print(f"ratio (thesis time / ours): [bold]{t_thesis / t_ours:.2f}x[/bold]  "
                       f"({datetime.now().isoformat(timespec='minutes')})")
 

@@ -39,6 +39,17 @@ class OptimizerConfig:
     """Photometric loss: mse (thesis), mape (Parallel Inversion) or huber."""
     screw_origin: Literal["target", "world"] = "target"
     """Point the screw motions turn about: the target centre, or the model frame's origin (thesis)."""
+    patience: int | None = None
+    """Stop a step early when the best loss has not improved by min-improvement for this many iterations
+    (beyond the thesis). Unset: always run every iteration."""
+    min_improvement: float = 0.01
+    """Relative improvement of the best loss that counts as progress for patience."""
+    prune_every: int | None = None
+    """Every this many iterations, stop optimizing (and rendering) candidates whose loss is more than
+    prune-ratio times the best, never leaving fewer than the step keeps (successive halving, beyond the
+    thesis). Unset: never."""
+    prune_ratio: float = 2.0
+    """How far above the best loss a candidate may be and stay in the step."""
 
 
 @dataclass
@@ -53,6 +64,8 @@ class StepResult:
     """Per iteration: ``loss`` [N] on that iteration's pixels, and ``error_deg`` [N] when known."""
     dropped: list[int] = field(default_factory=list)
     """Candidates removed because their pose, loss or gradient became NaN or infinite."""
+    pruned: list[int] = field(default_factory=list)
+    """Candidates stopped early because their loss was far above the best (``prune_every``)."""
 
 
 def _centred(centre: Tensor) -> tuple[Tensor, Tensor]:
@@ -85,14 +98,15 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, in
                         sampler: PixelSampler, eval_pixels: Tensor, centre: Tensor, config: OptimizerConfig,
                         rng: np.random.Generator,
                         error_fn: Callable[[Tensor], Tensor] | None = None,
-                        on_iteration: Callable[[int, dict], None] | None = None) -> StepResult:
+                        on_iteration: Callable[[int, dict], None] | None = None,
+                        min_candidates: int = 1) -> StepResult:
     """Optimize candidates ``start`` [N, 4, 4] against ``observed`` [H, W, 3] (float in [0, 1]).
 
     ``sampler`` must be prepared on the observed image; it draws fresh pixels each iteration, shared by all
     candidates. Final losses are measured on ``eval_pixels`` [E, 2], fixed for the frame, so candidates
     (and steps) are ranked on the same pixels. ``error_fn`` maps poses [N, 4, 4] to errors in degrees,
     recorded in the history when the truth is known. ``on_iteration(i, record)`` sees each iteration's
-    history record as it is made (progress bars).
+    history record as it is made (progress bars). Pruning never leaves fewer than ``min_candidates``.
     """
     device = loaded.device
     start = start.to(device, torch.float32)
@@ -104,7 +118,11 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, in
     gamma = config.lr_decay ** (1.0 / config.lr_decay_iterations)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
     alive = torch.ones(n, dtype=torch.bool, device=device)
+    """Not dropped for a non-finite pose, loss or gradient."""
+    active = alive.clone()
+    """Alive and not pruned: still rendered and optimized."""
     history = []
+    best_seen, stalled = float("inf"), 0
 
     def poses() -> Tensor:
         return to_c @ exp_se3(theta) @ from_c @ start
@@ -112,27 +130,52 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, in
     for iteration in range(config.iterations):
         pixels = torch.as_tensor(sampler.sample(rng), device=device)
         c2w = poses()
-        leaf = c2w.detach().requires_grad_(True)
-        losses = candidate_losses(loaded, leaf, intrinsics, pixels, observed[pixels[:, 0], pixels[:, 1]],
-                                  config.loss, backward=True)
+        rendered = torch.nonzero(active).flatten()
+        leaf = c2w[rendered].detach().requires_grad_(True)
+        losses = torch.full((n,), torch.inf, device=device)
+        losses[rendered] = candidate_losses(loaded, leaf, intrinsics, pixels, observed[pixels[:, 0], pixels[:, 1]],
+                                            config.loss, backward=True)
+        grad = torch.zeros_like(c2w)
+        grad[rendered] = leaf.grad
         # A pose, loss or gradient that is not finite ends the candidate. nerfstudio's renderer turns NaN
         # colours into 0 in eval mode, so a NaN pose alone would still get a finite loss.
-        alive &= torch.isfinite(losses) & torch.isfinite(c2w).flatten(1).all(1) & \
-            torch.isfinite(leaf.grad).flatten(1).all(1)
+        finite = torch.isfinite(losses) & torch.isfinite(c2w).flatten(1).all(1) & torch.isfinite(grad).flatten(1).all(1)
+        alive &= ~active | finite
+        active &= alive
         optimizer.zero_grad(set_to_none=True)
-        c2w.backward(torch.where(alive[:, None, None], leaf.grad, 0.0))
+        c2w.backward(torch.where(active[:, None, None], grad, 0.0))
         optimizer.step()
         scheduler.step()
-        record = {"loss": torch.where(alive, losses, torch.inf).cpu().numpy()}
+        losses = torch.where(active, losses, torch.inf)
+        record = {"loss": losses.cpu().numpy()}
         if error_fn is not None:
             record["error_deg"] = error_fn(c2w.detach()).cpu().numpy()
         history.append(record)
         if on_iteration is not None:
             on_iteration(iteration, record)
+        if not bool(active.any()):
+            break
+        if config.prune_every and (iteration + 1) % config.prune_every == 0:
+            active &= ~_far_above_best(losses, config.prune_ratio, min_candidates)
+        best = float(losses.min())
+        stalled = 0 if best < best_seen * (1.0 - config.min_improvement) else stalled + 1
+        best_seen = min(best_seen, best)
+        if config.patience is not None and stalled >= config.patience:
+            break
     final = poses().detach()
-    losses = candidate_losses(loaded, final, intrinsics, eval_pixels.to(device),
-                              observed[eval_pixels[:, 0], eval_pixels[:, 1]], config.loss, backward=False)
-    alive &= torch.isfinite(losses)
-    losses = torch.where(alive, losses, torch.inf)
+    losses = torch.full((n,), torch.inf, device=device)
+    kept = torch.nonzero(active).flatten()
+    losses[kept] = candidate_losses(loaded, final[kept], intrinsics, eval_pixels.to(device),
+                                    observed[eval_pixels[:, 0], eval_pixels[:, 1]], config.loss, backward=False)
+    alive &= ~active | torch.isfinite(losses)
+    losses = torch.where(active & alive, losses, torch.inf)
     dropped = torch.nonzero(~alive).flatten().tolist()
-    return StepResult(final, losses, history, dropped)
+    pruned = torch.nonzero(alive & ~active).flatten().tolist()
+    return StepResult(final, losses, history, dropped, pruned)
+
+
+def _far_above_best(losses: Tensor, ratio: float, keep: int) -> Tensor:
+    """Candidates [N] (bool) whose loss is more than ``ratio`` times the best, sparing the ``keep`` best."""
+    far = losses > ratio * losses.min()
+    far[torch.argsort(losses)[:keep]] = False
+    return far & torch.isfinite(losses)

@@ -28,6 +28,7 @@ from nerfinv_plugin.inversion.settings import InvertConfig, read_config, write_c
 from nerfinv_plugin.inversion.tracker import Frame, StepRecord, Tracker, TrackerState
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.loading import load_model
+from nerfinv_plugin.model.render import set_sample_counts
 from nerfinv_plugin.report.results import CONFIG, RunFolder
 from nerfinv_plugin.report.summary import summarize
 
@@ -106,6 +107,10 @@ class Inversion:
                         torch.as_tensor(loaded.dataset_to_model(f.c2w_true), dtype=torch.float32))
                   for f in sequence.frames]
         centre = torch.as_tensor(self._to_model(loaded, np.asarray(c.target)), dtype=torch.float32)
+        if c.render.target_radius_m is not None:
+            loaded.target_sphere = (centre.to(loaded.device), c.render.target_radius_m * loaded.dataparser_scale)
+        if c.render.proposal_samples is not None or c.render.nerf_samples is not None:
+            set_sample_counts(loaded, c.render.proposal_samples, c.render.nerf_samples)
         start = self._starts(loaded, sequence, centre)
         tracker = Tracker(loaded, centre, c.optimizer, c.monte_carlo, c.sampling, c.pixels, c.eval_pixels,
                           c.seed, _rotation_error)
@@ -195,7 +200,8 @@ class Inversion:
     def _step_row(record: StepRecord, index: int, frame: int, step: int, wall: float) -> dict:
         history = record.result.history
         row = {"index": index, "frame": frame, "step": step, "wall_time_s": wall, "candidates": record.candidates,
-               "kept": record.kept, "dropped": record.result.dropped, "loss": record.loss,
+               "kept": record.kept, "dropped": record.result.dropped, "pruned": record.result.pruned,
+               "iterations": len(history), "loss": record.loss,
                "best_loss_per_iteration": [float(np.min(h["loss"])) for h in history]}
         if history and "error_deg" in history[0]:
             row["best_error_deg_per_iteration"] = [float(np.min(h["error_deg"])) for h in history]

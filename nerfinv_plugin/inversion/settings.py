@@ -48,6 +48,20 @@ class StartConfig:
 
 
 @dataclass
+class RenderConfig:
+    """How candidate rays are sampled during inversion (the model's own settings are for whole scenes)."""
+
+    target_radius_m: float | None = None
+    """Radius (dataset metres) of a sphere about --target that holds the whole object. Rays are sampled
+    only where they cross it, and rays that miss it are background, not rendered; with fewer samples the
+    renders stay as sharp (docs/benchmarks.md). Unset: the model's own near and far."""
+    proposal_samples: tuple[int, ...] | None = None
+    """Samples per ray of each proposal level (nerfacto's two levels: 64 32 when trained). Unset: as trained."""
+    nerf_samples: int | None = None
+    """Samples per ray of the final field (nerfacto: 48, nerfacto-tiny: 24 when trained). Unset: as trained."""
+
+
+@dataclass
 class InvertConfig:
     """Estimate the pose of a known object in every frame of an image sequence by inverting a trained
     nerfstudio model: parallel iNeRF with Monte Carlo resampling, the observed image advancing to the next
@@ -100,6 +114,7 @@ class InvertConfig:
     """Pixels rendered per candidate and iteration."""
     eval_pixels: int = 1024
     """Fixed random pixels per frame on which candidates are ranked."""
+    render: RenderConfig = field(default_factory=RenderConfig)
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
     monte_carlo: MonteCarloConfig = field(default_factory=MonteCarloConfig)
 

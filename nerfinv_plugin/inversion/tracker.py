@@ -159,7 +159,8 @@ class Tracker:
         if self.error_fn is not None and frame.c2w_true is not None:
             error_fn = lambda poses, truth=frame.c2w_true: self.error_fn(poses, truth)  # noqa: E731
         result = optimize_candidates(self.loaded, state.candidates, observed, frame.intrinsics, sampler,
-                                     eval_pixels, self.centre, optimizer, state.rng, error_fn, on_iteration)
+                                     eval_pixels, self.centre, optimizer, state.rng, error_fn, on_iteration,
+                                     min_candidates=keep_count(mc, state.step, state.candidates.shape[0]))
         alive = int(torch.isfinite(result.losses).sum())
         if alive == 0:
             raise FloatingPointError(f"every candidate's loss became NaN or infinite on frame "
