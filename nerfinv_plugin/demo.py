@@ -62,12 +62,12 @@ class DemoSettings:
     def inversion(self) -> InvertConfig:
         """The inversion the demo runs: 8 candidates starting 15-20 degrees and 0.25 m off the first frame's
         true pose (iNeRF's protocol: a search from scratch does not fit the time budget), keep 3 then 1,
-        rays bounded to 1 m about the body origin with a third of the trained sample counts."""
+        rays bounded to 1 m about the body origin with (8, 4) / 8 samples instead of the trained (64, 32) / 24."""
         return InvertConfig(
             load_config=self.model_config, sequence=str(self.trajectory), name=EXPERIMENT, timestamp=TIMESTAMP,
             output_dir=self.output_dir, device=self.device, seed=self.seed,
             starts=StartConfig(source="truth-offset", count=8, min_deg=15.0, max_deg=20.0, shift_m=0.25),
-            render=RenderConfig(target_radius_m=1.0, proposal_samples=(16, 8), nerf_samples=12),
+            render=RenderConfig(target_radius_m=1.0, proposal_samples=(8, 4), nerf_samples=8),
             optimizer=OptimizerConfig(iterations=self.iterations), monte_carlo=MonteCarloConfig(keep=(3, 1), spawn=2))
 
 

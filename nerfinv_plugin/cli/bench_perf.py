@@ -43,9 +43,9 @@ class PerfBenchmark:
     """Target centre in the dataset frame."""
     target_radius_m: float | None = 1.0
     """Ours: rays bounded to this radius about the target (ns-invert --render.target-radius-m)."""
-    proposal_samples: tuple[int, ...] | None = (16, 8)
+    proposal_samples: tuple[int, ...] | None = (8, 4)
     """Ours: proposal samples per ray (--render.proposal-samples)."""
-    nerf_samples: int | None = 12
+    nerf_samples: int | None = 8
     """Ours: field samples per ray (--render.nerf-samples)."""
     sweep: bool = False
     """Time ours for 1 to 80 candidates and 64 to 4096 pixels (sweep-iterations each) instead."""

@@ -80,9 +80,9 @@ class RenderBenchmark:
     target_radius_m: float | None = 1.0
     """Our way: rays sampled only within this radius (dataset units) of the dataset origin, as ns-invert's
     --render.target-radius-m does. Unset: the model's near and far."""
-    proposal_samples: tuple[int, ...] | None = (16, 8)
+    proposal_samples: tuple[int, ...] | None = (8, 4)
     """Our way: samples per ray of each proposal level (--render.proposal-samples). Unset: as trained."""
-    nerf_samples: int | None = 12
+    nerf_samples: int | None = 8
     """Our way: samples per ray of the final field (--render.nerf-samples). Unset: as trained."""
     on_target: bool = False
     """Draw the pixels only where the first candidate's rays cross the target sphere (as interest-region
