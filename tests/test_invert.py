@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import tyro
 
 from nerfinv_plugin.cli.demo import Demo
@@ -296,3 +297,25 @@ def test_interrupted_demo_inversion_continues(tmp_path):
     demo.main()
     rows = RunFolder(demo.run_dir).rows()
     assert len(rows) == 2 and np.isfinite([r["rotation_deg"] for r in rows]).all()
+
+
+def test_prior_starts_surround_the_given_label_and_need_one(toy_run, shirt, tmp_path):
+    from nerfinv_plugin.data.sequences import read_sequence
+    from nerfinv_plugin.geometry.se3 import geodesic_deg
+    from nerfinv_plugin.inversion.session import InversionError
+    from nerfinv_plugin.model.loading import load_model
+
+    label = json.loads((shirt / "roe1" / "roe1.json").read_text())[0]
+    starts = StartConfig(source="prior", count=6, max_deg=10.0, shift_m=0.1,
+                         prior_q=tuple(label["q_vbs2tango_true"]), prior_r=tuple(label["r_Vo2To_vbs_true"]))
+    config = _config(toy_run, shirt, tmp_path, starts=starts)
+    loaded = load_model(toy_run[0], device="cpu")
+    sequence = read_sequence(config.sequence, 0, 1)
+    poses = Inversion.create(config)._starts(loaded, sequence, torch.zeros(3))
+    truth = torch.as_tensor(loaded.dataset_to_model(sequence.frames[0].c2w_true), dtype=torch.float32)
+    torch.testing.assert_close(poses[0], truth, atol=1e-5, rtol=1e-5)  # the first start is the prior itself
+    angles = geodesic_deg(poses[:, :3, :3], truth[None, :3, :3].expand(6, 3, 3))
+    assert float(angles[1:].min()) > 0.1 and float(angles.max()) <= 10.0 * np.sqrt(3) + 1e-3
+    with pytest.raises(InversionError, match="prior-q"):
+        Inversion.create(replace(config, starts=StartConfig(source="prior")))._starts(loaded, sequence,
+                                                                                     torch.zeros(3))

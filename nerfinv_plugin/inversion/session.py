@@ -21,7 +21,7 @@ from torch import Tensor
 
 from nerfinv_plugin.data.sequences import Sequence, read_sequence
 from nerfinv_plugin.geometry.errors import label_error
-from nerfinv_plugin.geometry.frames import c2w_opencv_to_label, opencv_to_opengl
+from nerfinv_plugin.geometry.frames import c2w_opencv_to_label, label_to_c2w_opencv, opencv_to_opengl
 from nerfinv_plugin.geometry.se3 import geodesic_deg
 from nerfinv_plugin.inversion import starts
 from nerfinv_plugin.inversion.settings import InvertConfig, read_config, write_config
@@ -177,6 +177,12 @@ class Inversion:
             poses = starts.sphere_shell(s.count, radius, target, rng)
         elif s.source == "volume":
             poses = starts.volume(s.count, s.max_range_m, s.min_range_m, target, rng)
+        elif s.source == "prior":
+            if s.prior_q is None or s.prior_r is None:
+                raise InversionError("--starts.source prior needs the approximate first pose: --starts.prior-q QW QX "
+                                     "QY QZ --starts.prior-r X Y Z (a SHIRT label)")
+            prior = opencv_to_opengl(label_to_c2w_opencv(np.asarray(s.prior_q), np.asarray(s.prior_r)))
+            poses = starts.around_prior(prior, s.count, s.max_deg, s.shift_m, target, self.config.seed)
         else:
             poses = starts.training_views(self._training_transforms(loaded), s.count, rng)
         return torch.as_tensor(loaded.dataset_to_model(poses), dtype=torch.float32)

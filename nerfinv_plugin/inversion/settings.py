@@ -25,12 +25,14 @@ class SettingsError(Exception):
 class StartConfig:
     """Where the candidates of the first Monte Carlo step come from (dataset frame, metres)."""
 
-    source: Literal["training-views", "sphere-shell", "volume", "truth-offset"] = "sphere-shell"
+    source: Literal["training-views", "sphere-shell", "volume", "prior", "truth-offset"] = "sphere-shell"
     """training-views: poses of the model's training images (the thesis' default; needs the training data
     where config.yml says it is); sphere-shell: cameras at one range looking at the target, random roll
     (the thesis' SHIRT sampling); volume: cameras anywhere between min-range-m and max-range-m (the thesis'
-    SPEED+ sampling); truth-offset: turned 'min-deg' to 'max-deg' away from the first frame's true pose and
-    shifted by 'shift-m' (iNeRF's evaluation protocol; needs ground truth)."""
+    SPEED+ sampling); prior: around an approximate first pose given as a SHIRT label (prior-q, prior-r),
+    turned up to 'max-deg' per Euler angle and shifted up to 'shift-m' per axis; truth-offset: turned
+    'min-deg' to 'max-deg' away from the first frame's true pose and shifted by 'shift-m' (iNeRF's
+    evaluation protocol; needs ground truth)."""
     count: int = 15
     """Number of starting candidates."""
     range_m: float | None = None
@@ -44,7 +46,11 @@ class StartConfig:
     max_deg: float = 20.0
     """truth-offset: largest rotation away from the truth."""
     shift_m: float = 0.25
-    """truth-offset: distance each start is moved in a random direction."""
+    """truth-offset: distance each start is moved in a random direction; prior: largest shift per axis."""
+    prior_q: tuple[float, float, float, float] | None = None
+    """prior: approximate attitude of the first frame, SHIRT's q_vbs2tango (scalar first)."""
+    prior_r: tuple[float, float, float] | None = None
+    """prior: approximate target position in the camera frame of the first frame (metres)."""
 
 
 @dataclass
