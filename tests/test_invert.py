@@ -133,8 +133,11 @@ def test_ctrl_c_keeps_the_finished_frames_and_says_how_to_resume(toy_run, shirt,
             "--name", "e", "--timestamp", "t", "--device", "cpu", "--starts.source", "truth-offset",
             "--starts.count", "2", "--optimizer.iterations", "3", "--pixels", "32", "--eval-pixels", "64"]
     # Each frame takes a fraction of a second here; steps-per-frame makes frames long enough to interrupt.
+    # A shell that starts jobs in the background (CI) makes them ignore SIGINT, and Python then installs no
+    # KeyboardInterrupt handler: give the command the disposition a terminal would.
     process = subprocess.Popen([shutil.which("ns-invert"), *args, "--steps-per-frame", "40"], text=True,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "COLUMNS": "200"})
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "COLUMNS": "200"},
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 240
     while not RunFolder(run).rows() and time.monotonic() < deadline and process.poll() is None:
         time.sleep(0.2)

@@ -1,5 +1,6 @@
 """Thin tyro front ends: each builds a dataclass from the command line and calls its ``main``."""
 
+import signal
 import sys
 import warnings
 from typing import Any
@@ -13,6 +14,10 @@ warnings.filterwarnings("ignore", category=FutureWarning)
 warnings.filterwarnings("ignore", category=UserWarning, module="nerfstudio")
 
 
+def _stop(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 class Interrupted(Exception):
     """Ctrl-C during long work; the message says what was kept and how to continue."""
 
@@ -23,6 +28,7 @@ def run(command: type, name: str, *expected: type[BaseException], default: Any =
     code 2, without a traceback. Ctrl-C ends it with exit code 130."""
     tyro.extras.set_accent_color("bright_yellow")
     errors = Console(stderr=True, soft_wrap=True)  # one line, however long
+    signal.signal(signal.SIGTERM, _stop)  # `kill` stops a background run as Ctrl-C does, keeping its results
     try:
         parsed: Any = tyro.cli(command, default=default)
         parsed.main()
