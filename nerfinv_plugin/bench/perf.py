@@ -84,6 +84,24 @@ def _timed(device: torch.device, rays: int, iterations: int, work: Callable[[], 
     return Timing(seconds, iterations, rays, int(peak()))
 
 
+def thesis_step(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor, target: Tensor) -> Tensor:
+    """One iteration as the thesis' implementation does it: a ray bundle per candidate, rendered through
+    the patched ``get_outputs_for_camera_ray_bundle`` of stock nerfstudio (its own hash-grid forward)
+    with the model's weights not frozen, the candidates' losses stacked and back-propagated once.
+    ``c2w`` is [N, 3, 4]. Returns the rendered colours [N, P, 3]."""
+    model = loaded.model
+    rgbs, losses = [], []
+    with keep_gradients(model), stock_hash_encoding(model):
+        for n in range(c2w.shape[0]):
+            camera = pinhole_cameras(c2w[n:n + 1], intrinsics).to(loaded.device)
+            bundle = camera.generate_rays(camera_indices=0, coords=pixels.float() + 0.5)
+            rgb = model.get_outputs_for_camera_ray_bundle(bundle.reshape((pixels.shape[0], 1)))["rgb"][:, 0]
+            rgbs.append(rgb)
+            losses.append(((rgb - target) ** 2).mean())
+    torch.stack(losses).sum().backward()
+    return torch.stack(rgbs)
+
+
 def thesis_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsics: Intrinsics, pixels: int,
                 iterations: int, lr: float = 0.01, seed: int = 0) -> Timing:
     """The thesis' implementation, iteration by iteration (see the module docstring)."""
@@ -97,21 +115,13 @@ def thesis_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsic
     def work() -> None:
         loaded.model.requires_grad_(True)
         try:
-            with keep_gradients(loaded.model), stock_hash_encoding(loaded.model):
-                for _ in range(iterations):
-                    chosen = torch.as_tensor(PixelSampler("interest_region", pixels).prepare(image).sample(rng),
-                                             device=device)
-                    target = observed[chosen[:, 0], chosen[:, 1]]
-                    c2w = exp_se3(theta) @ start
-                    losses = []
-                    for n in range(c2w.shape[0]):
-                        camera = pinhole_cameras(c2w[n:n + 1, :3], intrinsics).to(device)
-                        bundle = camera.generate_rays(camera_indices=0, coords=chosen.float() + 0.5)
-                        rgb = loaded.model.get_outputs_for_camera_ray_bundle(bundle.reshape((pixels, 1)))["rgb"]
-                        losses.append(((rgb[:, 0] - target) ** 2).mean())
-                    optimizer.zero_grad(set_to_none=True)
-                    torch.stack(losses).sum().backward()
-                    optimizer.step()
+            for _ in range(iterations):
+                chosen = torch.as_tensor(PixelSampler("interest_region", pixels).prepare(image).sample(rng),
+                                         device=device)
+                optimizer.zero_grad(set_to_none=True)
+                c2w = (exp_se3(theta) @ start)[:, :3]
+                thesis_step(loaded, c2w, intrinsics, chosen, observed[chosen[:, 0], chosen[:, 1]])
+                optimizer.step()
         finally:
             loaded.model.requires_grad_(False)
             loaded.model.zero_grad(set_to_none=True)

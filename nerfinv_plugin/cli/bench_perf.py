@@ -64,9 +64,7 @@ class PerfBenchmark:
         if frame.c2w_true is None:
             raise SequenceError(f"{self.sequence}: frame {self.frame} has no ground truth to place the starts around")
         truth = torch.as_tensor(loaded.dataset_to_model(frame.c2w_true), dtype=torch.float32)
-        pose = np.eye(4)
-        pose[:3, 3] = self.target
-        centre = torch.as_tensor(loaded.dataset_to_model(pose)[:3, 3], dtype=torch.float32)
+        centre = torch.as_tensor(loaded.point_to_model(np.asarray(self.target)), dtype=torch.float32)
 
         def starts(count: int) -> torch.Tensor:
             return inerf_protocol_starts(truth, centre, count, 15.0, 20.0, 0.05 * loaded.dataparser_scale, self.seed)

@@ -10,41 +10,20 @@ import numpy as np
 import torch
 from rich.console import Console
 
+from nerfinv_plugin.bench.perf import thesis_step
 from nerfinv_plugin.cli import run
 from nerfinv_plugin.inversion.optimizer import candidate_losses
 from nerfinv_plugin.inversion.starts import sphere_shell
-from nerfinv_plugin.model.fused_hash import stock_hash_encoding
-from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.loading import Device, ModelLoadError, load_model
 from nerfinv_plugin.model.render import (
     Intrinsics,
     bound_to_target,
-    pinhole_cameras,
     ray_bundle,
     render,
     set_sample_counts,
 )
 from nerfinv_plugin.synth.datasets import speedplus_like_camera
-
-
-def thesis_step(loaded: LoadedModel, c2w: torch.Tensor, intrinsics: Intrinsics, pixels: torch.Tensor,
-                target: torch.Tensor) -> torch.Tensor:
-    """One iteration as the thesis' implementation does it: a ray bundle per candidate, rendered through
-    the patched ``get_outputs_for_camera_ray_bundle`` of stock nerfstudio (its own hash-grid forward)
-    with the model's weights not frozen, the candidates' losses stacked and back-propagated once.
-    Returns the rendered colours [N, P, 3]."""
-    model = loaded.model
-    rgbs, losses = [], []
-    with keep_gradients(model), stock_hash_encoding(model):
-        for n in range(c2w.shape[0]):
-            camera = pinhole_cameras(c2w[n:n + 1], intrinsics).to(loaded.device)
-            bundle = camera.generate_rays(camera_indices=0, coords=pixels.float() + 0.5)
-            rgb = model.get_outputs_for_camera_ray_bundle(bundle.reshape((pixels.shape[0], 1)))["rgb"][:, 0]
-            rgbs.append(rgb)
-            losses.append(((rgb - target) ** 2).mean())
-    torch.stack(losses).sum().backward()
-    return torch.stack(rgbs)
 
 
 def batched_step(loaded: LoadedModel, c2w: torch.Tensor, intrinsics: Intrinsics, pixels: torch.Tensor,
@@ -98,7 +77,7 @@ class RenderBenchmark:
         poses = loaded.dataset_to_model(sphere_shell(self.candidates, self.range_m, np.zeros(3), rng))
         c2w = torch.as_tensor(poses[:, :3], dtype=torch.float32, device=loaded.device)
         sphere = None if self.target_radius_m is None else \
-            (torch.as_tensor(loaded.dataset_to_model(np.eye(4))[:3, 3], dtype=torch.float32, device=loaded.device),
+            (torch.as_tensor(loaded.point_to_model(np.zeros(3)), dtype=torch.float32, device=loaded.device),
              self.target_radius_m * loaded.dataparser_scale)
         allowed = np.arange(self.width * self.height)
         if self.on_target and sphere is not None:

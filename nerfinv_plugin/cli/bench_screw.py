@@ -61,7 +61,7 @@ class ScrewBenchmark:
                                 "needs one (add it to poses.json, or use a SHIRT or Blender sequence)")
         truth = torch.as_tensor(loaded.dataset_to_model(observed.c2w_true), dtype=torch.float32)
         frame = Frame(observed.image, seq.intrinsics, observed.name, truth)
-        centre = torch.as_tensor(loaded.dataset_to_model(np.eye(4))[:3, 3], dtype=torch.float32)
+        centre = torch.as_tensor(loaded.point_to_model(np.zeros(3)), dtype=torch.float32)
         # The camera's distance from the target origin: the true range of a SHIRT label.
         target_range = float(np.linalg.norm(observed.c2w_true[:3, 3]))
         shift = self.shift_fraction * target_range * loaded.dataparser_scale

@@ -106,7 +106,7 @@ class Inversion:
         frames = [Frame(f.image, sequence.intrinsics, f.name, None if f.c2w_true is None else
                         torch.as_tensor(loaded.dataset_to_model(f.c2w_true), dtype=torch.float32))
                   for f in sequence.frames]
-        centre = torch.as_tensor(self._to_model(loaded, np.asarray(c.target)), dtype=torch.float32)
+        centre = torch.as_tensor(loaded.point_to_model(np.asarray(c.target)), dtype=torch.float32)
         if c.render.target_radius_m is not None:
             loaded.target_sphere = (centre.to(loaded.device), c.render.target_radius_m * loaded.dataparser_scale)
         if c.render.proposal_samples is not None or c.render.nerf_samples is not None:
@@ -151,12 +151,6 @@ class Inversion:
         summary = self.summary(rows, total // c.steps_per_frame, loaded, sequence)
         self.folder.write_summary(summary)
         return summary
-
-    @staticmethod
-    def _to_model(loaded: LoadedModel, point: np.ndarray) -> np.ndarray:
-        pose = np.eye(4)
-        pose[:3, 3] = point
-        return loaded.dataset_to_model(pose)[:3, 3]
 
     def _starts(self, loaded: LoadedModel, sequence: Sequence, centre: Tensor) -> Tensor:
         """Starting candidates [N, 4, 4] in the model frame."""

@@ -39,6 +39,12 @@ class LoadedModel:
         out[..., :3, 3] *= self.dataparser_scale
         return out
 
+    def point_to_model(self, point: np.ndarray) -> np.ndarray:
+        """A point [3] from the dataset frame into the model frame (the target centre, say)."""
+        pose = np.eye(4)
+        pose[:3, 3] = point
+        return self.dataset_to_model(pose)[:3, 3]
+
     def model_to_dataset(self, c2w: np.ndarray) -> np.ndarray:
         """Inverse of :meth:`dataset_to_model`."""
         out = np.array(c2w, dtype=np.float64)
