@@ -51,6 +51,9 @@ class PerfBenchmark:
     """Time ours for 1 to 80 candidates and 64 to 4096 pixels (sweep-iterations each) instead."""
     sweep_iterations: int = 5
     """Iterations per point of the sweep."""
+    profile: bool = False
+    """Profile 5 of our iterations with torch.profiler instead and print the operators that take the most
+    CPU time (where the time goes)."""
     device: Device = "auto"
     """Where to render."""
     seed: int = 0
@@ -85,6 +88,10 @@ class PerfBenchmark:
             ours()
             self._sweep(console, loaded, starts, frame.image, sequence.intrinsics, centre, config)
             return
+        if self.profile:
+            ours()
+            self._profile(console, loaded, starts(self.candidates), frame.image, sequence.intrinsics, centre, config)
+            return
         thesis = thesis_loop(loaded, starts(self.candidates), frame.image, sequence.intrinsics, self.pixels,
                              self.iterations, seed=self.seed)
         ours()
@@ -111,6 +118,21 @@ class PerfBenchmark:
             t: Timing = our_loop(loaded, starts(n), image, intrinsics, p, centre, short, self.seed)
             console.print(f"| {n} | {p} | {n * p:,} | {t.per_iteration:.3f} | "
                           f"{1e6 * t.per_iteration / (n * p):.1f} | {t.peak_memory_bytes / MB:,.0f} MB |")
+
+
+    def _profile(self, console: Console, loaded, start, image, intrinsics, centre, config: OptimizerConfig) -> None:
+        short = replace(config, iterations=5)
+        our_loop(loaded, start, image, intrinsics, self.pixels, centre, short, self.seed)  # warm-up
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
+            our_loop(loaded, start, image, intrinsics, self.pixels, centre, short, self.seed)
+        events = profile.key_averages()
+        total = sum(e.self_cpu_time_total for e in events)
+        console.print(f"{self.candidates} candidates x {self.pixels} pixels x 5 iterations: "
+                      f"{total / 1e6:.2f} s of CPU time in operators")
+        console.print("| operator | self CPU time | share | calls |\n|---|---|---|---|")
+        for event in sorted(events, key=lambda e: e.self_cpu_time_total, reverse=True)[:15]:
+            console.print(f"| {event.key} | {event.self_cpu_time_total / 1e6:.3f} s | "
+                          f"{100 * event.self_cpu_time_total / total:.1f}% | {event.count} |")
 
 
 def entrypoint() -> None:

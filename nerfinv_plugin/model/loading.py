@@ -19,7 +19,8 @@ from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCall
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.base_model import Model
 
-from nerfinv_plugin.model.fused_hash import use_fused_hash_encoding
+from nerfinv_plugin.model.contraction import use_max_norm_contraction
+from nerfinv_plugin.model.hash_kernel import use_hash_kernel
 from nerfinv_plugin.model.loaded import LoadedModel, ModelLoadError
 from nerfinv_plugin.model.nerfacto_tiny import lpips_disabled
 from nerfinv_plugin.model.render import check_renders
@@ -130,7 +131,8 @@ def load_model(config_path: Path, step: int | None = None, device: Device = "aut
     except RuntimeError as err:
         raise ModelLoadError(f"checkpoint {checkpoint} does not match the model in {config_path}: "
                              f"{str(err).splitlines()[0]}") from err
-    use_fused_hash_encoding(model)
+    use_hash_kernel(model)  # the compiled kernel once frozen; the fused torch forward otherwise
+    use_max_norm_contraction(model)
     model.to(torch_device).eval().requires_grad_(False)
     result = LoadedModel(model, config, checkpoint, int(saved.get("step", 0)), torch_device, transform, scale)
     check_renders(result)  # first: for CUDA-only models, step callbacks already try to build CUDA kernels

@@ -1,0 +1,96 @@
+"""A compiled CPU kernel for hash-grid encodings whose tables are frozen, as they are during inversion.
+
+Inverting a model spends most of its CPU time in the hash encodings (docs/benchmarks.md): the torch
+forward, even fused, runs a dozen tensor operations per level whose intermediates ([rays x samples x
+levels x 8] indices, weights and features) go through memory, and autograd records all of them for a
+backward that only needs the gradient with respect to the positions. ``hash_grid.cpp`` does the same
+arithmetic in one pass per point and level, and its backward recomputes the corners instead of storing
+them. It is built with torch's C++ extension loader the first time it is needed (about a minute; then
+cached by torch under ``~/.cache/torch_extensions``), and used only where it computes exactly what
+nerfstudio computes: float32 positions on the CPU and a table that does not require gradients. Anything
+else (training, CUDA, double precision) goes through :func:`fused_hash_forward`.
+
+Set ``NERFINV_HASH_KERNEL=0`` to never build or use it. Where it cannot be built (no C++ compiler), a
+warning says so once and the torch forward is used.
+"""
+
+import functools
+import hashlib
+import logging
+import os
+import types
+import warnings
+from pathlib import Path
+
+import torch
+from nerfstudio.field_components.encodings import HashEncoding
+from torch import Tensor
+
+from nerfinv_plugin.model.fused_hash import fused_hash_forward
+
+SOURCE = Path(__file__).with_name("hash_grid.cpp")
+
+
+def enabled() -> bool:
+    return os.environ.get("NERFINV_HASH_KERNEL", "1") != "0"
+
+
+@functools.cache
+def extension() -> types.ModuleType | None:
+    """The built kernel, or ``None`` (with one warning) where it cannot be built or is turned off."""
+    if not enabled():
+        return None
+    # Importing the loader on a machine without CUDA logs a warning about CUDA_HOME that does not concern a
+    # CPU kernel.
+    logging.getLogger("torch.utils.cpp_extension").setLevel(logging.ERROR)
+    from torch.utils.cpp_extension import load
+
+    # The source's hash in the name: an edited kernel is rebuilt instead of loading a stale cached one.
+    digest = hashlib.sha256(SOURCE.read_bytes()).hexdigest()[:12]
+    try:
+        return load(name=f"nerfinv_hash_grid_{digest}", sources=[str(SOURCE)], extra_cflags=["-O3"], verbose=False)
+    except Exception as err:  # noqa: BLE001 - a missing compiler, headers or ninja all mean the same here
+        first = (str(err).strip().splitlines() or [""])[-1][:200]
+        warnings.warn(f"nerfinv: the compiled hash-grid kernel could not be built ({type(err).__name__}: {first}); "
+                      "using the slower torch forward. Install a C++ compiler (g++) and ninja to get it.",
+                      RuntimeWarning, stacklevel=2)
+        return None
+
+
+class _FrozenHashGrid(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, positions: Tensor, table: Tensor, scalings: Tensor, offsets: Tensor, size: int) -> Tensor:
+        ctx.save_for_backward(positions, table, scalings, offsets)
+        ctx.size = size
+        with torch.profiler.record_function("nerfinv::hash_grid_forward"):  # named in profiles, else unseen
+            return extension().forward(positions, table, scalings, offsets, size)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        positions, table, scalings, offsets = ctx.saved_tensors
+        with torch.profiler.record_function("nerfinv::hash_grid_backward"):
+            grad_positions = extension().backward(grad.contiguous(), positions, table, scalings, offsets, ctx.size)
+        return grad_positions, None, None, None, None
+
+
+def kernel_hash_forward(self: HashEncoding, in_tensor: Tensor) -> Tensor:
+    """Drop-in for ``HashEncoding.pytorch_fwd``: the compiled kernel where it applies, else the fused
+    torch forward."""
+    if (self.hash_table.requires_grad or in_tensor.dtype != torch.float32 or in_tensor.device.type != "cpu"
+            or extension() is None):
+        return fused_hash_forward(self, in_tensor)
+    flat = in_tensor.reshape(-1, 3).contiguous()
+    out = _FrozenHashGrid.apply(flat, self.hash_table.detach(), self.scalings.to(torch.float32).contiguous(),
+                                self.hash_offset.to(torch.int64), int(self.hash_table_size))
+    return out.view(*in_tensor.shape[:-1], out.shape[-1])
+
+
+def use_hash_kernel(module: torch.nn.Module) -> int:
+    """Switch every torch-backed ``HashEncoding`` inside ``module`` to :func:`kernel_hash_forward`.
+    Returns how many were switched."""
+    count = 0
+    for sub in module.modules():
+        if isinstance(sub, HashEncoding) and sub.tcnn_encoding is None:
+            sub.pytorch_fwd = types.MethodType(kernel_hash_forward, sub)
+            count += 1
+    return count
