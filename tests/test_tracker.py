@@ -1,17 +1,22 @@
 """The inversion engine on the tiny toy model: convergence along a trajectory, the Monte Carlo schedule,
 fixed mode, determinism, the motion prior and the starting-pose sources."""
 
+import dataclasses
 import json
 
 import cv2
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
-from nerfinv_plugin.geometry.frames import opencv_to_opengl
+from nerfinv_plugin.data.sequences import SequenceError
+from nerfinv_plugin.geometry.frames import label_to_c2w_opencv, opencv_to_opengl
 from nerfinv_plugin.geometry.se3 import exp_se3, geodesic_deg, log_se3
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler
+from nerfinv_plugin.inversion.session import InversionError, shirt_label_pool
+from nerfinv_plugin.inversion.settings import InvertConfig, StartConfig
 from nerfinv_plugin.inversion.starts import (
     around_prior,
     inerf_protocol_starts,
@@ -143,6 +148,29 @@ def test_starting_pose_sources(toy_run):
     assert np.allclose(noisy[0], prior) and not np.allclose(noisy[1], prior)
     rot = geodesic_deg(torch.as_tensor(noisy[:, :3, :3]), torch.as_tensor(prior[:3, :3]).expand(10, 3, 3))
     assert float(rot.max()) <= 10 * np.sqrt(3) + 1e-6
+
+
+def test_shirt_label_starts_leave_out_the_frames_being_estimated(tmp_path):
+    rotations = Rotation.random(8, random_state=0)
+    labels = {}
+    for name, count in (("roe1", 5), ("roe2", 3)):
+        (tmp_path / name).mkdir()
+        quats = rotations[len(labels.get("roe1", [])):][:count].as_quat()[:, [3, 0, 1, 2]]  # scalar first
+        labels[name] = [{"filename": f"img{k:06d}.jpg", "q_vbs2tango_true": q.tolist(),
+                         "r_Vo2To_vbs_true": [0.1 * k, 0.0, 5.0]} for k, q in enumerate(quats)]
+        (tmp_path / name / f"{name}.json").write_text(json.dumps(labels[name]))
+    config = InvertConfig(sequence=str(tmp_path / "roe1" / "synthetic"), start=1, stop=3, starts=StartConfig(count=6))
+    pool = shirt_label_pool(config)
+    expected = [labels["roe1"][k] for k in (0, 3, 4)] + labels["roe2"]
+    assert len(pool) == 6
+    for pose, label in zip(pool, expected):
+        c2w = opencv_to_opengl(label_to_c2w_opencv(np.array(label["q_vbs2tango_true"]),
+                                                   np.array(label["r_Vo2To_vbs_true"])))
+        np.testing.assert_allclose(pose, c2w)
+    with pytest.raises(InversionError, match="fewer than --starts.count 7"):
+        shirt_label_pool(dataclasses.replace(config, starts=StartConfig(count=7)))
+    with pytest.raises(SequenceError, match="not a SHIRT trajectory"):
+        shirt_label_pool(dataclasses.replace(config, sequence=str(tmp_path)))
 
 
 def test_a_candidate_whose_loss_turns_nan_is_dropped_and_the_rest_go_on(toy_sequence):

@@ -123,6 +123,20 @@ def read_sequence(spec: str | Path, start: int = 0, stop: int | None = None, str
     return _load(listing, selected, resolution)
 
 
+def shirt_trajectory_poses(spec: str | Path) -> tuple[str, dict[str, np.ndarray]]:
+    """The labelled poses of every trajectory in the SHIRT root that ``spec`` (``root/roeN`` or
+    ``root/roeN/<domain>``) belongs to, as camera-to-body poses [F, 4, 4] with OpenGL axes in file order,
+    keyed by trajectory name; and the name of ``spec``'s own trajectory."""
+    path = Path(spec)
+    trajectory = path if _is_shirt_trajectory(path) else path.parent
+    if not _is_shirt_trajectory(trajectory):
+        raise SequenceError(f"{spec} is not a SHIRT trajectory (root/roeN with roeN/roeN.json); poses from SHIRT "
+                            "labels need one: use another --starts.source for this sequence")
+    poses = {folder.name: np.array([c2w for _, c2w in _read_labels(folder / f"{folder.name}.json")])
+             for folder in sorted(trajectory.parent.iterdir()) if folder.is_dir() and _is_shirt_trajectory(folder)}
+    return trajectory.name, poses
+
+
 def _check_range(spec: str | Path, start: int, stop: int | None, stride: int) -> None:
     if start < 0 or stride < 1 or (stop is not None and stop < 0):
         raise SequenceError(f"invalid frame range start={start} stop={stop} stride={stride} for {spec}; start "

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from nerfinv_plugin.data.sequences import Sequence, read_sequence
+from nerfinv_plugin.data.sequences import Sequence, read_sequence, shirt_trajectory_poses
 from nerfinv_plugin.geometry.errors import label_error
 from nerfinv_plugin.geometry.frames import c2w_opencv_to_label, label_to_c2w_opencv, opencv_to_opengl
 from nerfinv_plugin.geometry.se3 import geodesic_deg
@@ -67,6 +67,19 @@ def dataset_pose_to_label(c2w_opengl: np.ndarray) -> tuple[list[float], list[flo
     """SHIRT / SPEED+ label (q scalar-first, r in metres) of a dataset-frame camera-to-world pose."""
     q, r = c2w_opencv_to_label(opencv_to_opengl(c2w_opengl))  # the axis flip is its own inverse
     return [float(v) for v in q], [float(v) for v in r]
+
+
+def shirt_label_pool(c: InvertConfig) -> np.ndarray:
+    """Every labelled pose [M, 4, 4] of the SHIRT root of ``c.sequence`` but the frames the run estimates:
+    where ``--starts.source shirt-labels`` draws from."""
+    own, poses = shirt_trajectory_poses(c.sequence)
+    estimated = set(range(len(poses[own]))[c.start:c.stop:c.stride])
+    pool = [pose for name, trajectory in poses.items() for k, pose in enumerate(trajectory)
+            if name != own or k not in estimated]
+    if len(pool) < c.starts.count:
+        raise InversionError(f"--starts.source shirt-labels: the SHIRT root of {c.sequence} has {len(pool)} labelled "
+                             f"poses outside this run's frames, fewer than --starts.count {c.starts.count}")
+    return np.array(pool)
 
 
 def _rotation_error(poses: Tensor, truth: Tensor) -> Tensor:
@@ -177,6 +190,8 @@ class Inversion:
                                      "QY QZ --starts.prior-r X Y Z (a SHIRT label)")
             prior = opencv_to_opengl(label_to_c2w_opencv(np.asarray(s.prior_q), np.asarray(s.prior_r)))
             poses = starts.around_prior(prior, s.count, s.max_deg, s.shift_m, target, self.config.seed)
+        elif s.source == "shirt-labels":
+            poses = starts.drawn_from(shirt_label_pool(self.config), s.count, rng)
         else:
             poses = starts.training_views(self._training_transforms(loaded), s.count, rng)
         return torch.as_tensor(loaded.dataset_to_model(poses), dtype=torch.float32)

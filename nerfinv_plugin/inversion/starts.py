@@ -2,6 +2,7 @@
 metres), for :meth:`LoadedModel.dataset_to_model` to map into the model. All seeded.
 
 - ``training_views``: the poses of the training images (the thesis' default);
+- ``drawn_from``: poses drawn from a given set (the thesis' SHIRT runs drew them from SHIRT labels);
 - ``sphere_shell``: cameras at one range looking at the target with random roll (the same-range case of
   the thesis' section 5.3.1);
 - ``volume``: cameras anywhere up to a maximum range (SPEED+-like, section 5.3.2);
@@ -24,7 +25,11 @@ def training_views(transforms_json: Path, count: int, rng: np.random.Generator) 
     """``count`` poses [count, 4, 4] drawn without replacement from a Blender or nerfstudio transforms
     file (all of them when it has fewer)."""
     frames = json.loads(Path(transforms_json).read_text())["frames"]
-    poses = np.array([frame["transform_matrix"] for frame in frames], dtype=np.float64)
+    return drawn_from(np.array([frame["transform_matrix"] for frame in frames], dtype=np.float64), count, rng)
+
+
+def drawn_from(poses: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``count`` of ``poses`` [M, 4, 4] drawn without replacement, in their order (all when M <= count)."""
     pick = rng.choice(len(poses), size=min(count, len(poses)), replace=False)
     return poses[np.sort(pick)]
 
