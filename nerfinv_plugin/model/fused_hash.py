@@ -10,7 +10,7 @@ outputs agree with nerfstudio's to float rounding (tested).
 
 import contextlib
 import types
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
 from nerfstudio.field_components.encodings import HashEncoding
@@ -43,13 +43,14 @@ def fused_hash_forward(self: HashEncoding, in_tensor: Tensor) -> Tensor:
     return (features * weights.flatten(-2)[..., None]).sum(-2).flatten(-2)  # [..., L * F]
 
 
-def use_fused_hash_encoding(module: torch.nn.Module) -> int:
-    """Switch every torch-backed ``HashEncoding`` inside ``module`` to :func:`fused_hash_forward`.
-    Returns how many were switched (tcnn-backed encodings are left alone)."""
+def use_fused_hash_encoding(module: torch.nn.Module, forward: Callable[[HashEncoding, Tensor], Tensor] | None = None
+                            ) -> int:
+    """Switch every torch-backed ``HashEncoding`` inside ``module`` to ``forward`` (default
+    :func:`fused_hash_forward`). Returns how many were switched (tcnn-backed encodings are left alone)."""
     count = 0
     for sub in module.modules():
         if isinstance(sub, HashEncoding) and sub.tcnn_encoding is None:
-            sub.pytorch_fwd = types.MethodType(fused_hash_forward, sub)
+            sub.pytorch_fwd = types.MethodType(forward or fused_hash_forward, sub)
             count += 1
     return count
 

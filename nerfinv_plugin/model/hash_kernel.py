@@ -26,7 +26,7 @@ import torch
 from nerfstudio.field_components.encodings import HashEncoding
 from torch import Tensor
 
-from nerfinv_plugin.model.fused_hash import fused_hash_forward
+from nerfinv_plugin.model.fused_hash import fused_hash_forward, use_fused_hash_encoding
 
 SOURCE = Path(__file__).with_name("hash_grid.cpp")
 
@@ -88,9 +88,4 @@ def kernel_hash_forward(self: HashEncoding, in_tensor: Tensor) -> Tensor:
 def use_hash_kernel(module: torch.nn.Module) -> int:
     """Switch every torch-backed ``HashEncoding`` inside ``module`` to :func:`kernel_hash_forward`.
     Returns how many were switched."""
-    count = 0
-    for sub in module.modules():
-        if isinstance(sub, HashEncoding) and sub.tcnn_encoding is None:
-            sub.pytorch_fwd = types.MethodType(kernel_hash_forward, sub)
-            count += 1
-    return count
+    return use_fused_hash_encoding(module, kernel_hash_forward)
