@@ -29,13 +29,14 @@ class StartConfig:
                     "shirt-labels"] = "sphere-shell"
     """training-views: poses of the model's training images (the thesis' default; needs the training data
     where config.yml says it is); sphere-shell: cameras at one range looking at the target, random roll
-    (the thesis' SHIRT sampling); volume: cameras anywhere between min-range-m and max-range-m (the thesis'
-    SPEED+ sampling); prior: around an approximate first pose given as a SHIRT label (prior-q, prior-r),
-    turned up to 'max-deg' per Euler angle and shifted up to 'shift-m' per axis; truth-offset: turned
-    'min-deg' to 'max-deg' away from the first frame's true pose and shifted by 'shift-m' (iNeRF's
-    evaluation protocol; needs ground truth); shirt-labels: poses drawn from the labels of the SHIRT
-    trajectories in the sequence's root, leaving out the frames this run estimates (the thesis' SHIRT
-    protocol, which drew its starts from SHIRT images; an evaluation protocol)."""
+    (the same range as the thesis' SHIRT starts, without their attitudes); volume: cameras anywhere
+    between min-range-m and max-range-m (the thesis' SPEED+ sampling); prior: around an approximate first
+    pose given as a SHIRT label (prior-q, prior-r), turned up to 'max-deg' per Euler angle and shifted up
+    to 'shift-m' per axis; truth-offset: turned 'min-deg' to 'max-deg' away from the first frame's true
+    pose and shifted by 'shift-m' (iNeRF's evaluation protocol; needs ground truth); shirt-labels: poses
+    drawn from the labels of the SHIRT trajectories in the sequence's root, leaving out the frames this run
+    estimates (the thesis' SHIRT protocol, which drew its starts from SHIRT images; an evaluation
+    protocol)."""
     count: int = 15
     """Number of starting candidates."""
     range_m: float | None = None
