@@ -153,9 +153,9 @@ def test_starting_pose_sources(toy_run):
 def test_shirt_label_starts_leave_out_the_frames_being_estimated(tmp_path):
     rotations = Rotation.random(8, random_state=0)
     labels = {}
-    for name, count in (("roe1", 5), ("roe2", 3)):
+    for name, first, count in (("roe1", 0, 5), ("roe2", 5, 3)):
         (tmp_path / name).mkdir()
-        quats = rotations[len(labels.get("roe1", [])):][:count].as_quat()[:, [3, 0, 1, 2]]  # scalar first
+        quats = rotations[first:first + count].as_quat()[:, [3, 0, 1, 2]]  # scalar first
         labels[name] = [{"filename": f"img{k:06d}.jpg", "q_vbs2tango_true": q.tolist(),
                          "r_Vo2To_vbs_true": [0.1 * k, 0.0, 5.0]} for k, q in enumerate(quats)]
         (tmp_path / name / f"{name}.json").write_text(json.dumps(labels[name]))

@@ -119,7 +119,6 @@ class PerfBenchmark:
             console.print(f"| {n} | {p} | {n * p:,} | {t.per_iteration:.3f} | "
                           f"{1e6 * t.per_iteration / (n * p):.1f} | {t.peak_memory_bytes / MB:,.0f} MB |")
 
-
     def _profile(self, console: Console, loaded, start, image, intrinsics, centre, config: OptimizerConfig) -> None:
         short = replace(config, iterations=5)
         our_loop(loaded, start, image, intrinsics, self.pixels, centre, short, self.seed)  # warm-up

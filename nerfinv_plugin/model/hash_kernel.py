@@ -5,7 +5,7 @@ forward, even fused, runs a dozen tensor operations per level whose intermediate
 levels x 8] indices, weights and features) go through memory, and autograd records all of them for a
 backward that only needs the gradient with respect to the positions. ``hash_grid.cpp`` does the same
 arithmetic in one pass per point and level, and its backward recomputes the corners instead of storing
-them. It is built with torch's C++ extension loader the first time it is needed (about a minute; then
+them. It is built with torch's C++ extension loader the first time it is needed (about 30 s; then
 cached by torch under ``~/.cache/torch_extensions``), and used only where it computes exactly what
 nerfstudio computes: float32 positions on the CPU and a table that does not require gradients. Anything
 else (training, CUDA, double precision) goes through :func:`fused_hash_forward`.
