@@ -10,8 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
-from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, StartConfig
-from nerfinv_plugin.inversion.tracker import MonteCarloConfig
+from nerfinv_plugin.inversion.settings import InvertConfig
 from nerfinv_plugin.model.loading import Device
 from nerfinv_plugin.report.results import SUMMARY
 from nerfinv_plugin.synth.datasets import (
@@ -60,15 +59,12 @@ class DemoSettings:
         return self.output_dir / EXPERIMENT / "nerfinv" / TIMESTAMP
 
     def inversion(self) -> InvertConfig:
-        """The inversion the demo runs: 8 candidates starting 15-20 degrees and 0.25 m off the first frame's
-        true pose (iNeRF's protocol: a search from scratch does not fit the time budget), keep 3 then 1,
-        rays bounded to 1 m about the body origin with (8, 4) / 8 samples instead of the trained (64, 32) / 24."""
+        """The inversion the demo runs: what the bare ``ns-invert`` command does, from nothing (starting poses
+        from the model's view bank, rays bounded to the object's extent read off the model)."""
         return InvertConfig(
             load_config=self.model_config, sequence=str(self.trajectory), name=EXPERIMENT, timestamp=TIMESTAMP,
             output_dir=self.output_dir, device=self.device, seed=self.seed,
-            starts=StartConfig(source="truth-offset", count=8, min_deg=15.0, max_deg=20.0, shift_m=0.25),
-            render=RenderConfig(target_radius_m=1.0, proposal_samples=(8, 4), nerf_samples=8),
-            optimizer=OptimizerConfig(iterations=self.iterations), monte_carlo=MonteCarloConfig(keep=(3, 1), spawn=2))
+            optimizer=OptimizerConfig(iterations=self.iterations))
 
 
 def data_rendered(settings: DemoSettings) -> bool:

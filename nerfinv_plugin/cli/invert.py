@@ -1,6 +1,7 @@
 """``ns-invert``: estimate the pose in every frame of a sequence with a trained nerfstudio model."""
 
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -22,8 +23,10 @@ BAD_INPUT = (ModelLoadError, SequenceError, SettingsError, InversionError, Float
 def _frame_line(row: dict) -> str:
     error = "" if row["rotation_deg"] is None else \
         f"rotation {row['rotation_deg']:.2f} deg, translation {row['translation_m']:.3f} m, "
+    flags = "" if row.get("object_found", True) else ", no object found"
+    flags += ", bank asked again" if row.get("reinitialized") else ""
     return (f"frame {row['frame']} ({row['name']}): {error}loss {row['loss']:.5f}, {row['candidates']} candidates, "
-            f"{row['wall_time_s']:.1f} s")
+            f"{row['wall_time_s']:.1f} s{flags}")
 
 
 def _summary_lines(summary: dict) -> list[str]:
@@ -63,8 +66,13 @@ def invert(config: InvertConfig, console: Console) -> dict:
         def step(row: dict) -> None:
             progress.update(task, description=f"step {min(row['step'] + 2, steps)}/{steps}")
 
+        def bank(views: int) -> Callable[[int], None]:
+            bank_task = progress.add_task("view bank", total=views, loss="-", error="-")
+            return lambda done: progress.update(bank_task, advance=done)
+
         events = Events(begin, iteration, step, lambda row: console.print(_frame_line(row)),
-                        lambda message: console.print(f"[yellow]{message}[/yellow]"))
+                        lambda message: console.print(f"[yellow]{escape(message)}[/yellow]"),
+                        lambda message: console.print(escape(message)), bank)
         inversion = Inversion.resume(config.resume, events) if config.resume else Inversion.create(config, events)
         try:
             summary = inversion.run()

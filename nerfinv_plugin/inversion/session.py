@@ -23,7 +23,11 @@ from nerfinv_plugin.data.sequences import Sequence, read_sequence, shirt_traject
 from nerfinv_plugin.geometry.errors import label_error
 from nerfinv_plugin.geometry.frames import c2w_opencv_to_label, label_to_c2w_opencv, opencv_to_opengl
 from nerfinv_plugin.geometry.se3 import geodesic_deg
+from nerfinv_plugin.initialization.detect import Detection, MaskError, detection_from_mask, find_object, read_masks
+from nerfinv_plugin.initialization.extent import object_radius
+from nerfinv_plugin.initialization.initializer import Initializer, silhouette_iou
 from nerfinv_plugin.inversion import starts
+from nerfinv_plugin.inversion.optimizer import StepResult
 from nerfinv_plugin.inversion.settings import InvertConfig, read_config, write_config
 from nerfinv_plugin.inversion.tracker import Frame, StepRecord, Tracker, TrackerState
 from nerfinv_plugin.model.loaded import LoadedModel
@@ -31,6 +35,11 @@ from nerfinv_plugin.model.loading import load_model
 from nerfinv_plugin.model.render import set_sample_counts
 from nerfinv_plugin.report.results import CONFIG, RunFolder
 from nerfinv_plugin.report.summary import summarize
+
+BOUNDED_PROPOSAL_SAMPLES = (8, 4)
+"""Samples per proposal level when rays are bounded to the object (docs/benchmarks.md: the same inversion
+errors as the trained (64, 32) in three seeds, at a sixth of the cost)."""
+BOUNDED_NERF_SAMPLES = 8
 
 
 class InversionError(Exception):
@@ -46,6 +55,10 @@ class Events:
     step: Callable[[dict], None] = lambda step: None
     frame: Callable[[dict], None] = lambda row: None
     warn: Callable[[str], None] = lambda message: None
+    info: Callable[[str], None] = lambda message: None
+    bank: Callable[[int], Callable[[int], None]] = lambda views: (lambda done: None)
+    """Called before the view bank is rendered with its number of views; returns what to call after each
+    batch with the number of views it rendered."""
 
 
 def sequence_name(spec: str) -> str:
@@ -119,12 +132,13 @@ class Inversion:
         frames = [Frame(f.image, sequence.intrinsics, f.name, None if f.c2w_true is None else
                         torch.as_tensor(loaded.dataset_to_model(f.c2w_true), dtype=torch.float32))
                   for f in sequence.frames]
+        detections = self._detections(sequence)
         centre = torch.as_tensor(loaded.point_to_model(np.asarray(c.target)), dtype=torch.float32)
-        if c.render.target_radius_m is not None:
-            loaded.target_sphere = (centre.to(loaded.device), c.render.target_radius_m * loaded.dataparser_scale)
-        if c.render.proposal_samples is not None or c.render.nerf_samples is not None:
-            set_sample_counts(loaded, c.render.proposal_samples, c.render.nerf_samples)
-        start = self._starts(loaded, sequence, centre)
+        self._bound_rays(loaded, centre)
+        initializer = None
+        if c.starts.source == "bank":
+            initializer = self._initializer(loaded, centre)
+        start = self._starts(loaded, sequence, centre, detections, initializer)
         tracker = Tracker(loaded, centre, c.optimizer, c.monte_carlo, c.sampling, c.pixels, c.eval_pixels,
                           c.seed, _rotation_error)
         self.folder.path.mkdir(parents=True, exist_ok=True)
@@ -142,10 +156,20 @@ class Inversion:
         frame_time = sum(s["wall_time_s"] for s in steps if s["index"] == len(rows))
         for step_index in range(len(steps), total):
             k, within = divmod(step_index, c.steps_per_frame)
+            tic = time.perf_counter()
+            detection = detections[k]
             if within == 0 and c.monte_carlo.mode == "fixed":
                 state = tracker.begin(start, seed=c.seed + k)
-            tic = time.perf_counter()
-            record = tracker.step(state, frames[k], k, self.events.iteration)
+            reinitialized = False
+            if detection is None:
+                self.events.warn(f"frame {k} ({frames[k].name}): no object found (nothing bright enough on the "
+                                 "dark background, or too small); keeping the prediction")
+                estimate = state.last_estimate if state.last_estimate is not None else start[0]
+                record = StepRecord(k, estimate, state.last_loss, 0, StepResult(estimate[None], torch.zeros(1)))
+            else:
+                if within == 0 and k > 0 and initializer is not None and c.lost_iou > 0:
+                    reinitialized = self._reinitialize(loaded, initializer, state, frames[k], detection)
+                record = tracker.step(state, frames[k], k, self.events.iteration)
             wall = time.perf_counter() - tic
             elapsed += wall
             frame_time += wall
@@ -155,26 +179,98 @@ class Inversion:
                                  f"{', '.join(map(str, record.result.dropped))} (non-finite pose, loss or "
                                  "gradient); going on with the others")
             if within == c.steps_per_frame - 1:
-                rows.append(self._frame_row(loaded, record, sequence, k, frame_time, elapsed))
+                rows.append(self._frame_row(loaded, record, sequence, k, frame_time, elapsed, detection is not None,
+                                            reinitialized or any(s.get("reinitialized") for s in steps
+                                                                 if s["index"] == k)))
                 frame_time = 0.0
+            steps[-1]["reinitialized"] = reinitialized
             self.folder.save(rows, steps, state.state_dict(), elapsed)
             self.events.step(steps[-1])
             if within == c.steps_per_frame - 1:
                 self.events.frame(rows[-1])
-        summary = self.summary(rows, total // c.steps_per_frame, loaded, sequence)
+        summary = self.summary(rows, total // c.steps_per_frame, loaded, sequence, initializer)
         self.folder.write_summary(summary)
         return summary
 
-    def _starts(self, loaded: LoadedModel, sequence: Sequence, centre: Tensor) -> Tensor:
+    def _detections(self, sequence: Sequence) -> list[Detection | None]:
+        """The object in every frame: from the mask folder when one is given, else found on the dark
+        background."""
+        if self.config.masks is None:
+            return [find_object(f.image) for f in sequence.frames]
+        height, width = sequence.frames[0].image.shape[:2]
+        try:
+            masks = read_masks(self.config.masks, [f.name for f in sequence.frames], (height, width))
+        except MaskError as err:
+            raise InversionError(f"--masks: {err}") from err
+        return [detection_from_mask(mask) for mask in masks]
+
+    def _bound_rays(self, loaded: LoadedModel, centre: Tensor) -> None:
+        """Bound rays to a sphere that holds the object (measured on the model unless given) and take the
+        fewer samples that then suffice, unless the settings say otherwise."""
+        r = self.config.render
+        if r.bound:
+            if r.target_radius_m is not None:
+                radius = r.target_radius_m * loaded.dataparser_scale
+            else:
+                radius = object_radius(loaded, centre.to(loaded.device))
+                self.events.info(f"object radius {radius / loaded.dataparser_scale:.3g} m, read off the model's "
+                                 "density (rays are bounded to it)")
+            loaded.target_sphere = (centre.to(loaded.device), radius)
+        proposal, nerf = r.proposal_samples, r.nerf_samples
+        sampler = getattr(loaded.model, "proposal_sampler", None)
+        if r.bound and proposal is None and nerf is None and sampler is not None:
+            proposal = BOUNDED_PROPOSAL_SAMPLES if len(sampler.num_proposal_samples_per_ray) == 2 else None
+            nerf = BOUNDED_NERF_SAMPLES
+        if proposal is not None or nerf is not None:
+            set_sample_counts(loaded, proposal, nerf)
+
+    def _initializer(self, loaded: LoadedModel, centre: Tensor) -> Initializer:
+        """The view bank, from the cache or rendered now."""
+        if loaded.target_sphere is None:
+            radius = object_radius(loaded, centre.to(loaded.device))
+        else:
+            radius = float(loaded.target_sphere[1])
+        initializer = Initializer.create(loaded, centre.numpy().astype(np.float64), radius, self.config.bank,
+                                         self.events.bank)
+        how = f"rendered in {initializer.build_s:.1f} s" if initializer.built else "read from the cache"
+        self.events.info(f"view bank: {self.config.bank.views} views x {self.config.bank.in_plane} in-plane angles, "
+                         f"{how} ({initializer.cache})")
+        return initializer
+
+    def _reinitialize(self, loaded: LoadedModel, initializer: Initializer, state: TrackerState, frame: Frame,
+                      detection: Detection) -> bool:
+        """Ask the bank again when the best candidate no longer puts the object where the frame shows it;
+        its hypotheses join the candidates. Returns whether it did."""
+        iou = silhouette_iou(loaded, state.candidates[0], frame.intrinsics, detection.mask)
+        if iou >= self.config.lost_iou:
+            return False
+        found = initializer.poses(frame.image, detection, frame.intrinsics, self.config.reinit_count)
+        state.candidates = torch.cat([state.candidates, found])
+        self.events.warn(f"frame {frame.name}: the object is not where the estimate puts it (silhouette IoU "
+                         f"{iou:.2f}); {len(found)} bank hypotheses join the candidates")
+        return True
+
+    def _starts(self, loaded: LoadedModel, sequence: Sequence, centre: Tensor, detections: list[Detection | None],
+                initializer: Initializer | None) -> Tensor:
         """Starting candidates [N, 4, 4] in the model frame."""
         s, target = self.config.starts, np.asarray(self.config.target, dtype=np.float64)
         rng = np.random.default_rng(self.config.seed)
+        if initializer is not None:
+            first = next((k for k, d in enumerate(detections) if d is not None), None)
+            if first is None:
+                raise InversionError(f"no object found in any of the {len(detections)} frames of "
+                                     f"{self.config.sequence} (nothing bright enough on a dark background): give "
+                                     "--masks, or check the frames")
+            if first > 0:
+                self.events.warn(f"no object in the first {first} frame(s); the bank starts from frame {first}")
+            frame = sequence.frames[first]
+            return initializer.poses(frame.image, detections[first], sequence.intrinsics, s.count)
         first_truth = sequence.frames[0].c2w_true
         if s.source == "truth-offset" or (s.source == "sphere-shell" and s.range_m is None):
             if first_truth is None:
                 raise InversionError(f"--starts.source {s.source} (without --starts.range-m) needs the first "
                                      "frame's true pose and this sequence has none: use --starts.source "
-                                     "sphere-shell --starts.range-m METRES")
+                                     "bank, or sphere-shell --starts.range-m METRES")
         if s.source == "truth-offset":
             truth = torch.as_tensor(loaded.dataset_to_model(first_truth), dtype=torch.float32)
             return starts.inerf_protocol_starts(truth, centre, s.count, s.min_deg, s.max_deg,
@@ -224,13 +320,14 @@ class Inversion:
         return row
 
     def _frame_row(self, loaded: LoadedModel, record: StepRecord, sequence: Sequence, k: int, wall: float,
-                   elapsed: float) -> dict:
+                   elapsed: float, object_found: bool, reinitialized: bool) -> dict:
         estimate_model = record.estimate.double().numpy()
         q, r = dataset_pose_to_label(loaded.model_to_dataset(estimate_model))
         row = {"index": k, "frame": self._frame_number(k), "name": sequence.frames[k].name,
                "steps": self.config.steps_per_frame, "wall_time_s": wall, "elapsed_s": elapsed, "q": q, "r": r,
                "c2w_model": estimate_model.tolist(), "loss": record.loss, "candidates": record.candidates,
-               "dropped": len(record.result.dropped), "rotation_deg": None, "translation_m": None,
+               "dropped": len(record.result.dropped), "object_found": object_found, "reinitialized": reinitialized,
+               "rotation_deg": None, "translation_m": None,
                "translation_rel": None, "score": None}
         truth = sequence.frames[k].c2w_true
         if truth is not None:
@@ -241,8 +338,18 @@ class Inversion:
                     "translation_rel": error.translation_rel, "score": error.score}
         return row
 
-    def summary(self, rows: list[dict], total_frames: int, loaded: LoadedModel, sequence: Sequence) -> dict:
-        return {"run": str(self.folder.path), "model": str(self.config.load_config), "model_step": loaded.step,
-                "sequence": str(self.config.sequence), "sequence_format": sequence.kind,
-                "frames_total": total_frames, "complete": len(rows) == total_frames,
-                "device": str(loaded.device), **summarize(rows)}
+    def summary(self, rows: list[dict], total_frames: int, loaded: LoadedModel, sequence: Sequence,
+                initializer: Initializer | None = None) -> dict:
+        out = {"run": str(self.folder.path), "model": str(self.config.load_config), "model_step": loaded.step,
+               "sequence": str(self.config.sequence), "sequence_format": sequence.kind,
+               "frames_total": total_frames, "complete": len(rows) == total_frames,
+               "device": str(loaded.device), "starts": self.config.starts.source,
+               "frames_without_object": sum(not r.get("object_found", True) for r in rows),
+               "frames_reinitialized": sum(bool(r.get("reinitialized")) for r in rows)}
+        if loaded.target_sphere is not None:
+            out["target_radius_m"] = float(loaded.target_sphere[1]) / loaded.dataparser_scale
+        if initializer is not None:
+            out["bank"] = {"views": self.config.bank.views, "entries": len(initializer.entries.views),
+                           "built_in_this_run": initializer.built, "render_s": initializer.build_s,
+                           "cache": str(initializer.cache)}
+        return out | summarize(rows)

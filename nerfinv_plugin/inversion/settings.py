@@ -11,6 +11,7 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
 import yaml
 
+from nerfinv_plugin.initialization.bank import BankConfig
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.sampling import Strategy
 from nerfinv_plugin.inversion.tracker import MonteCarloConfig
@@ -25,22 +26,23 @@ class SettingsError(Exception):
 class StartConfig:
     """Where the candidates of the first Monte Carlo step come from (dataset frame, metres)."""
 
-    source: Literal["training-views", "sphere-shell", "volume", "prior", "truth-offset",
-                    "shirt-labels"] = "sphere-shell"
-    """training-views: poses of the model's training images (the thesis' default; needs the training data
-    where config.yml says it is); sphere-shell: cameras at one range looking at the target, random roll
-    (the same range as the thesis' SHIRT starts, without their attitudes); volume: cameras anywhere
-    between min-range-m and max-range-m (the thesis' SPEED+ sampling); prior: around an approximate first
-    pose given as a SHIRT label (prior-q, prior-r), turned up to 'max-deg' per Euler angle and shifted up
-    to 'shift-m' per axis; truth-offset: turned 'min-deg' to 'max-deg' away from the first frame's true
-    pose and shifted by 'shift-m' (iNeRF's evaluation protocol; needs ground truth); shirt-labels: poses
-    drawn from the labels of the SHIRT trajectories in the sequence's root, leaving out the frames this run
-    estimates (the thesis' SHIRT protocol, which drew its starts from SHIRT images; an evaluation
-    protocol)."""
+    source: Literal["bank", "training-views", "sphere-shell", "volume", "prior", "truth-offset",
+                    "shirt-labels"] = "bank"
+    """bank: hypotheses from matching the first frame against views rendered from the model (needs nothing
+    but the model and the image: the mission's case); training-views: poses of the model's training images
+    (the thesis' default; needs the training data where config.yml says it is); sphere-shell: cameras at
+    --starts.range-m looking at the target, random roll (without --starts.range-m it takes the first frame's
+    true range: an evaluation protocol); volume: cameras anywhere between min-range-m and max-range-m (the
+    thesis' SPEED+ sampling); prior: around an approximate first pose given as a SHIRT label (prior-q,
+    prior-r), turned up to 'max-deg' per Euler angle and shifted up to 'shift-m' per axis; truth-offset:
+    turned 'min-deg' to 'max-deg' away from the first frame's true pose and shifted by 'shift-m' (iNeRF's
+    evaluation protocol: reads the ground truth); shirt-labels: poses drawn from the labels of the SHIRT
+    trajectories in the sequence's root, leaving out the frames this run estimates (the thesis' SHIRT
+    protocol: reads ground truth)."""
     count: int = 15
-    """Number of starting candidates."""
+    """Number of starting candidates (bank: the best hypotheses, kept apart on SO(3))."""
     range_m: float | None = None
-    """sphere-shell radius. Unset: the true range of the first frame (needs ground truth)."""
+    """sphere-shell radius. Unset: the true range of the first frame (reads the ground truth)."""
     min_range_m: float = 2.0
     """volume: nearest camera distance from the target."""
     max_range_m: float = 9.0
@@ -61,14 +63,19 @@ class StartConfig:
 class RenderConfig:
     """How candidate rays are sampled during inversion (the model's own settings are for whole scenes)."""
 
+    bound: bool = True
+    """Sample rays only where they cross a sphere about --target that holds the whole object; rays that miss
+    it are background, not rendered, and fewer samples keep the renders as sharp (docs/benchmarks.md).
+    Off: the model's own near and far."""
     target_radius_m: float | None = None
-    """Radius (dataset metres) of a sphere about --target that holds the whole object. Rays are sampled
-    only where they cross it, and rays that miss it are background, not rendered; with fewer samples the
-    renders stay as sharp (docs/benchmarks.md). Unset: the model's own near and far."""
+    """Radius of that sphere (dataset metres). Unset: read off the model's density (the object's extent
+    about --target, widened by 10%)."""
     proposal_samples: tuple[int, ...] | None = None
-    """Samples per ray of each proposal level (nerfacto's two levels: 64 32 when trained). Unset: as trained."""
+    """Samples per ray of each proposal level (nerfacto's two levels: 64 32 when trained). Unset: 8 4 when
+    rays are bounded and the model has two proposal levels, as trained otherwise."""
     nerf_samples: int | None = None
-    """Samples per ray of the final field (nerfacto: 48, nerfacto-tiny: 24 when trained). Unset: as trained."""
+    """Samples per ray of the final field (nerfacto: 48, nerfacto-tiny: 24 when trained). Unset: 8 when rays
+    are bounded and the model samples with proposals, as trained otherwise."""
 
 
 @dataclass
@@ -115,6 +122,16 @@ class InvertConfig:
     """Target centre in the dataset frame (metres): starts look at it, and screw motions and spawned copies
     turn about it. SHIRT and SPEED+ put the body origin there."""
     starts: StartConfig = field(default_factory=StartConfig)
+    bank: BankConfig = field(default_factory=BankConfig)
+    masks: Path | None = None
+    """Folder of object masks named like the frames (PNG, non-zero = object), used instead of finding the
+    object on the dark background."""
+    lost_iou: float = 0.25
+    """Before each frame, the best candidate's silhouette is compared with the object found in the frame;
+    below this overlap (IoU) the object counts as lost and the bank is asked again on that frame (with
+    --starts.source bank). 0: never."""
+    reinit_count: int = 8
+    """Hypotheses the bank adds to the candidates when the object was lost."""
     steps_per_frame: int = 1
     """Monte Carlo steps spent on each frame before moving to the next (1: the thesis' trajectory method)."""
     sampling: Strategy = "interest_region"

@@ -16,7 +16,10 @@ from torch import Tensor
 
 def max_norm_contraction(self: SceneContraction, positions: Tensor | Gaussians) -> Tensor | Gaussians:
     if isinstance(positions, Gaussians) or not math.isinf(float(self.order or 2)):
-        return SceneContraction.forward(self, positions)
+        return type(self).forward(self, positions)
+    unit = getattr(self, "unit", None)  # nerfacto-tiny measures positions in a unit fitted to its cameras
+    if unit is not None:
+        positions = positions / unit
     mag = positions.abs().amax(-1, keepdim=True)
     return torch.where(mag < 1, positions, (2 - (1 / mag)) * (positions / mag))
 

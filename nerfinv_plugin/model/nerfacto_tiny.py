@@ -6,10 +6,14 @@ machine without internet needs:
 - no LPIPS metric: building it downloads AlexNet weights, which fails offline (the metric reports NaN);
 - a data manager that caches images in-process instead of spawning loader worker processes;
 - the same hash-grid function computed by a faster torch forward (``fused_hash``);
-- smaller hash tables, MLPs and sample counts, proposal sampling between near and far planes that
-  bound an object-centred scene, a random background behind RGBA training images, the camera optimizer
-  off so that the model frame stays the ground-truth frame, and evaluation/viewer settings that never
-  block or render full images often.
+- smaller hash tables, MLPs and sample counts, and proposal sampling between near and far planes;
+- planes and the scale of the scene contraction fitted to the training cameras (so that the model learns
+  the same scene whatever scale the dataparser gives it: metres for blender-data, a unit cube of cameras
+  for nerfstudio-data), kept in the checkpoint;
+- a random background behind RGBA training images and black behind RGB ones (a random background behind
+  an image without alpha can only be matched by filling space with black: the model then renders nothing);
+- the camera optimizer off so that the model frame stays the ground-truth frame, and evaluation/viewer
+  settings that never block or render full images often.
 
 nerfstudio imports this module for every ``ns-*`` command (entry point ``nerfstudio.method_configs``),
 so it must stay light and must never raise.
@@ -21,6 +25,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
+import numpy as np
 import torch
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
@@ -29,9 +34,13 @@ from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConf
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.field_components.spatial_distortions import SceneContraction
+from nerfstudio.model_components.scene_colliders import NearFarCollider
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
 
 from nerfinv_plugin.model.fused_hash import use_fused_hash_encoding
 
@@ -61,13 +70,136 @@ def lpips_disabled() -> Iterator[None]:
         lpip.LearnedPerceptualImagePatchSimilarity = original
 
 
+class _KeepsMissingBuffers(torch.nn.Module):
+    """A module whose buffers an older checkpoint may lack: loading such a checkpoint keeps the values
+    the module was built with instead of failing on missing keys."""
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args) -> None:
+        for name, value in self._buffers.items():
+            state_dict.setdefault(prefix + name, value)
+        super()._load_from_state_dict(state_dict, prefix, *args)
+
+
+class FittedNearFar(_KeepsMissingBuffers, NearFarCollider):
+    """nerfstudio's near/far collider whose planes are a buffer, so that planes fitted to the training
+    cameras travel with the checkpoint (``config.yml`` is written before the cameras are read)."""
+
+    def __init__(self, near_plane: float, far_plane: float) -> None:
+        super().__init__(near_plane=near_plane, far_plane=far_plane)
+        self.register_buffer("planes", torch.tensor([near_plane, far_plane]))
+
+    def fit(self, near_plane: float, far_plane: float) -> None:
+        self.planes.copy_(torch.tensor([near_plane, far_plane]))
+        self.near_plane, self.far_plane = near_plane, far_plane
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args) -> None:
+        super()._load_from_state_dict(state_dict, prefix, *args)
+        self.near_plane, self.far_plane = (float(v) for v in self.planes)
+
+
+class ScaledContraction(_KeepsMissingBuffers, SceneContraction):
+    """nerfacto's contraction of positions measured in ``unit``s: the cube that the hash grids resolve
+    finely (|x| < unit) holds the object whatever scale the dataparser put the scene at."""
+
+    def __init__(self, unit: float = 1.0) -> None:
+        super().__init__(order=float("inf"))
+        self.register_buffer("unit", torch.tensor(float(unit)))
+
+    def forward(self, positions: Tensor) -> Tensor:
+        return super().forward(positions / self.unit)
+
+
+@dataclass(frozen=True)
+class CameraFit:
+    """Planes and contraction unit that follow from where the training cameras are (model units)."""
+
+    near: float
+    far: float
+    unit: float
+
+    @classmethod
+    def of(cls, centres: np.ndarray, half_fov_rad: float) -> "CameraFit":
+        """For cameras at ``centres`` [N, 3] looking at an object about the origin, whose narrower half
+        field of view is ``half_fov_rad``: an object seen whole from the nearest camera lies within
+        ``unit = d_min sin(half fov)`` of the origin; rays sample from ``2 unit`` before the nearest camera's
+        object to ``2 unit`` beyond the farthest's (never closer than a twentieth of the nearest range)."""
+        distances = np.linalg.norm(np.asarray(centres, dtype=np.float64), axis=1)
+        d_min, d_max = float(distances.min()), float(distances.max())
+        unit = d_min * float(np.sin(half_fov_rad))
+        return cls(max(d_min - 2.0 * unit, 0.05 * d_min), d_max + 2.0 * unit, unit)
+
+
 class NerfactoTinyModel(NerfactoModel):
-    """nerfacto whose construction needs no network, with the faster torch hash-grid forward."""
+    """nerfacto whose construction needs no network, with the faster torch hash-grid forward, planes and
+    contraction fitted to the training cameras, and a background that suits the training images."""
+
+    config: "NerfactoTinyModelConfig"
 
     def populate_modules(self) -> None:
         with lpips_disabled():
             super().populate_modules()
         use_fused_hash_encoding(self)
+        c = self.config
+        self.collider = FittedNearFar(c.near_plane if c.near_plane is not None else 0.05,
+                                      c.far_plane if c.far_plane is not None else 1000.0)
+        contraction = ScaledContraction(c.contraction_unit if c.contraction_unit is not None else 1.0)
+        for field_ in (self.field, *self.proposal_networks):
+            field_.spatial_distortion = contraction
+
+    def fit_to_cameras(self, centres: np.ndarray, half_fov_rad: float) -> CameraFit:
+        """Set the planes and the contraction unit the config leaves unset from the training cameras."""
+        fit = CameraFit.of(centres, half_fov_rad)
+        c = self.config
+        fit = CameraFit(fit.near if c.near_plane is None else c.near_plane,
+                        fit.far if c.far_plane is None else c.far_plane,
+                        fit.unit if c.contraction_unit is None else c.contraction_unit)
+        self.collider.fit(fit.near, fit.far)
+        self.field.spatial_distortion.unit.fill_(fit.unit)
+        return fit
+
+    def get_loss_dict(self, outputs: dict, batch: dict, metrics_dict: dict | None = None) -> dict:
+        with _black_behind_rgb(self, batch["image"]):
+            return super().get_loss_dict(outputs, batch, metrics_dict)
+
+    def get_metrics_dict(self, outputs: dict, batch: dict) -> dict:
+        with _black_behind_rgb(self, batch["image"]):
+            return super().get_metrics_dict(outputs, batch)
+
+
+@contextlib.contextmanager
+def _black_behind_rgb(model: NerfactoModel, image: Tensor) -> Iterator[None]:
+    """A random background only where the training image has alpha to composite it behind; behind an RGB
+    image (what SPEED+, SHIRT and cameras give: the object over black space) the background is black."""
+    renderer = model.renderer_rgb
+    original = renderer.background_color
+    if image.shape[-1] == 3 and original == "random":
+        renderer.background_color = "black"
+    try:
+        yield
+    finally:
+        renderer.background_color = original
+
+
+class NerfactoTinyPipeline(VanillaPipeline):
+    """nerfstudio's pipeline, which also fits nerfacto-tiny's planes and contraction to the training
+    cameras once they are loaded."""
+
+    def __init__(self, config: VanillaPipelineConfig, device: str, *args, **kwargs) -> None:
+        super().__init__(config, device, *args, **kwargs)
+        model = self._model
+        if isinstance(model, NerfactoTinyModel) and self.datamanager.train_dataset is not None:
+            cameras = self.datamanager.train_dataset.cameras
+            centres = cameras.camera_to_worlds[:, :3, 3].cpu().numpy()
+            half = torch.minimum(torch.atan(0.5 * cameras.width / cameras.fx),
+                                 torch.atan(0.5 * cameras.height / cameras.fy))
+            fit = model.fit_to_cameras(centres, float(half.min()))
+            CONSOLE.print(f"nerfacto-tiny: near {fit.near:.3f}, far {fit.far:.3f}, contraction unit {fit.unit:.3f} "
+                          f"(model units, from {len(centres)} training cameras)")
+
+
+@dataclass
+class NerfactoTinyPipelineConfig(VanillaPipelineConfig):
+    _target: type = field(default_factory=lambda: NerfactoTinyPipeline)
 
 
 @dataclass
@@ -75,17 +207,23 @@ class NerfactoTinyModelConfig(NerfactoModelConfig):
     """nerfacto's options with CPU-sized defaults."""
 
     _target: type = field(default_factory=lambda: NerfactoTinyModel)
-    near_plane: float = 1.0
-    """Metres in the scenes ns-invert-synth writes (the object within 1 m of the origin, cameras 1.5 to
-    11 m away); scale both planes for other data."""
-    far_plane: float = 12.0
+    near_plane: float | None = None
+    """Nearest sample during training (model units). Unset: fitted to the training cameras (nearest range
+    less twice the contraction unit)."""
+    far_plane: float | None = None
+    """Farthest sample (model units). Unset: fitted to the training cameras (farthest range plus twice the
+    contraction unit)."""
+    contraction_unit: float | None = None
+    """Half-side of the cube the hash grids resolve finely (model units); space beyond it is contracted.
+    Unset: fitted to the training cameras (nearest range times the sine of the narrower half field of
+    view, where an object seen whole from the nearest camera lies)."""
     proposal_initial_sampler: Literal["piecewise", "uniform"] = "uniform"
     """Uniform between the planes: the piecewise sampler spends half its samples within 1 unit of the
     camera and leaves an object 5 m away with one or two samples, which it never learns."""
     background_color: Literal["random", "last_sample", "black", "white"] = "random"
     """With RGBA training images, a random background during training teaches opacity (on a fixed black
-    one a dark object and a half-transparent one look alike, and colours wash out to grey); renders for
-    inversion are then over black, like space."""
+    one a dark object and a half-transparent one look alike, and colours wash out to grey); behind RGB
+    training images it is black (the object over black space). Renders for inversion are over black."""
     implementation: Literal["tcnn", "torch"] = "torch"
     """torch runs everywhere; a tcnn checkpoint cannot be loaded into a torch model, so keep it fixed."""
     num_levels: int = 8
@@ -123,7 +261,7 @@ nerfacto_tiny = MethodSpecification(
         steps_per_eval_all_images=100_000,
         mixed_precision=False,
         machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
-        pipeline=VanillaPipelineConfig(
+        pipeline=NerfactoTinyPipelineConfig(
             datamanager=VanillaDataManagerConfig(
                 dataparser=BlenderDataParserConfig(alpha_color=None),  # keep RGBA for the random background
                 train_num_rays_per_batch=512,

@@ -1,0 +1,68 @@
+"""How large the object is, read off the model's density: the radius of a sphere about the target centre
+that holds everything the model made opaque around it.
+
+Rays are bounded to that sphere during inversion (fewer samples, same image), and the view bank frames it,
+so it must come from the model, not from a preset: a fixed bound cuts a larger object in half. Two passes
+of a density grid: a coarse one over the model's scene box, then a fine one about what the coarse pass
+found. Occupied cells are those through which a ray would lose at least a tenth of its light; only the
+occupied region connected to the cells nearest the centre counts, so floaters near the training cameras
+do not inflate the radius.
+"""
+
+import numpy as np
+import torch
+from scipy import ndimage
+from torch import Tensor
+
+from nerfinv_plugin.model.loaded import LoadedModel, ModelLoadError
+
+GRID = 48
+"""Cells per axis of each pass."""
+OPACITY = 0.1
+"""Share of a ray's light that an occupied cell absorbs across its width."""
+MARGIN = 1.1
+"""The radius found is widened by this factor, for the parts of thin structures below the threshold."""
+
+
+def density_field(loaded: LoadedModel):
+    """The field that gives the final densities: nerfacto's ``field``, NeRF's fine field."""
+    for name in ("field", "field_fine"):
+        field = getattr(loaded.model, name, None)
+        if field is not None and hasattr(field, "density_fn"):
+            return field
+    raise ModelLoadError(f"{type(loaded.model).__name__} exposes no density field: give the object's size with "
+                         "--render.target-radius-m METRES")
+
+
+def _occupied_radius(loaded: LoadedModel, centre: Tensor, half: float) -> float | None:
+    """Radius of the occupied cells connected to the centre, on a grid of half-side ``half`` about it;
+    ``None`` when no cell is occupied."""
+    field = density_field(loaded)
+    axis = torch.linspace(-half, half, GRID, device=loaded.device)
+    cell = float(axis[1] - axis[0])
+    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + centre.to(axis)
+    with torch.no_grad():
+        density = torch.cat([field.density_fn(part).reshape(-1) for part in grid.split(1 << 16)])
+    if not bool(torch.isfinite(density).all()):
+        raise ModelLoadError(f"{type(loaded.model).__name__} gives non-finite densities on a grid: give the object's "
+                             "size with --render.target-radius-m METRES")
+    occupied = (1.0 - torch.exp(-density * cell) >= OPACITY).reshape(GRID, GRID, GRID).cpu().numpy()
+    if not occupied.any():
+        return None
+    labels, _ = ndimage.label(occupied)
+    offsets = (grid - centre.to(axis)).reshape(GRID, GRID, GRID, 3).cpu().numpy()
+    distance = np.linalg.norm(offsets, axis=-1)
+    nearest = labels[occupied][np.argmin(distance[occupied])]
+    return float(distance[labels == nearest].max()) + 0.5 * np.sqrt(3.0) * cell
+
+
+def object_radius(loaded: LoadedModel, centre: Tensor) -> float:
+    """Radius (model units) of a sphere about ``centre`` [3] (model frame) holding the object."""
+    aabb = getattr(loaded.model, "scene_box", None)
+    extent = float(aabb.aabb.abs().max()) if aabb is not None else 1.0
+    coarse = _occupied_radius(loaded, centre, extent)
+    if coarse is None:
+        raise ModelLoadError(f"the model's density is empty within {extent:.3g} model units of the target: is "
+                             "--target the object's centre, and did the model learn it? (ns-invert-psnr scores it)")
+    fine = _occupied_radius(loaded, centre, min(1.25 * coarse, extent))
+    return MARGIN * (fine if fine is not None else coarse)

@@ -1,0 +1,63 @@
+"""What the tracker asks when it knows nothing of the pose, or has lost it: the bank's hypotheses for a
+frame, and a check of whether an estimate still puts the object where the frame shows it."""
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from nerfinv_plugin.initialization.bank import BankConfig, BankEntries, bank_entries, cached_bank, hypotheses
+from nerfinv_plugin.initialization.detect import Detection
+from nerfinv_plugin.model.loaded import LoadedModel
+from nerfinv_plugin.model.render import Intrinsics, render
+
+SILHOUETTE_RAYS = 4096
+"""At most this many rays render an estimate's silhouette for the lost-object check."""
+
+
+@dataclass
+class Initializer:
+    """The bank of a loaded model, ready to match frames."""
+
+    loaded: LoadedModel
+    centre: np.ndarray
+    """[3] object centre, model frame."""
+    config: BankConfig
+    entries: BankEntries
+    cache: Path
+    built: bool
+    """Whether this run rendered the bank (``False``: read from the cache)."""
+    build_s: float
+
+    @classmethod
+    def create(cls, loaded: LoadedModel, centre: np.ndarray, radius: float, config: BankConfig,
+               on_build: Callable[[int], Callable[[int], None]] | None = None) -> "Initializer":
+        bank, path, built = cached_bank(loaded, centre, radius, config, on_build)
+        return cls(loaded, np.asarray(centre, dtype=np.float64), config, bank_entries(bank, config), path, built,
+                   bank.build_s)
+
+    def poses(self, image: np.ndarray, detection: Detection, intrinsics: Intrinsics, count: int) -> Tensor:
+        """The ``count`` best hypotheses [K, 4, 4] (model frame, float32) for the object in ``image``."""
+        found = hypotheses(self.entries, image, detection, intrinsics, self.centre, count, self.config)
+        return torch.as_tensor(np.array([h.c2w for h in found]), dtype=torch.float32)
+
+
+def silhouette_iou(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, mask: np.ndarray) -> float:
+    """Overlap of the model's silhouette (accumulation over one half) at pose ``c2w`` [4, 4] with the
+    observed ``mask`` [H, W], on a grid of at most :data:`SILHOUETTE_RAYS` pixels."""
+    factor = max(1, int(np.ceil(np.sqrt(intrinsics.width * intrinsics.height / SILHOUETTE_RAYS))))
+    width, height = max(1, intrinsics.width // factor), max(1, intrinsics.height // factor)
+    small = intrinsics.scaled(width, height)
+    rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    pixels = torch.stack([rows.reshape(-1), cols.reshape(-1)], 1)
+    with torch.no_grad():
+        out = render(loaded, c2w[None].to(torch.float32), small, pixels)
+    opacity = out.accumulation if out.accumulation is not None else out.rgb.amax(-1, keepdim=True)
+    rendered = opacity.reshape(height, width).cpu().numpy() >= 0.5
+    observed = cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) >= 0.5
+    union = np.logical_or(rendered, observed).sum()
+    return float(np.logical_and(rendered, observed).sum() / union) if union else 0.0

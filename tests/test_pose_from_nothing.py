@@ -1,0 +1,112 @@
+"""``ns-invert`` with no option that needs the truth: it tracks from the view bank, never reads the labels,
+goes on through a frame without the object, and refuses a mask folder that does not fit."""
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from nerfinv_plugin.cli.invert import entrypoint
+from nerfinv_plugin.initialization.bank import BankConfig
+from nerfinv_plugin.inversion.optimizer import OptimizerConfig
+from nerfinv_plugin.inversion.session import Events, Inversion
+from nerfinv_plugin.inversion.settings import InvertConfig
+from nerfinv_plugin.report.results import RunFolder
+from nerfinv_plugin.synth.datasets import speedplus_like_camera, write_shirt_trajectories
+from nerfinv_plugin.synth.trajectories import TrajectorySpec
+
+
+@pytest.fixture(scope="module")
+def shirt(toy_run, tmp_path_factory) -> Path:
+    """A SHIRT root with a 6-frame roe1 trajectory of the toy scene."""
+    out = tmp_path_factory.mktemp("nothing")
+    write_shirt_trajectories(out, "toy", [TrajectorySpec(kind="roe1", num_frames=6, range_m=5.0)],
+                             speedplus_like_camera(80, 50), False, seed=4, spp=32, step=lambda: None)
+    return out / "shirt"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def bank_cache(tmp_path_factory):
+    """One bank cache for the module: the first run renders, the others read it."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("NERFINV_CACHE", str(tmp_path_factory.mktemp("cache")))
+        yield
+
+
+def _folder_of(shirt: Path, out: Path, poses: str) -> Path:
+    """The roe1 images as an image folder with camera.json, and poses.json: 'true', 'random' or 'none'."""
+    out.mkdir(parents=True)
+    for image in sorted((shirt / "roe1" / "synthetic" / "images").iterdir()):
+        shutil.copy(image, out / image.name)
+    shutil.copy(shirt / "camera.json", out / "camera.json")
+    labels = json.loads((shirt / "roe1" / "roe1.json").read_text())
+    if poses == "random":
+        rng = np.random.default_rng(7)
+        for label in labels:
+            q = rng.normal(size=4)
+            label["q_vbs2tango_true"] = (q / np.linalg.norm(q)).tolist()
+            label["r_Vo2To_vbs_true"] = rng.uniform(-3, 3, size=3).tolist()
+    if poses != "none":
+        (out / "poses.json").write_text(json.dumps(labels))
+    return out
+
+
+def test_the_bare_command_tracks_the_fixture_from_nothing(toy_run, shirt, tmp_path, monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["ns-invert", "--load-config", str(toy_run[0]), "--sequence",
+                                      str(shirt / "roe1"), "--output-dir", str(tmp_path), "--timestamp", "t"])
+    entrypoint()
+    run = tmp_path / "roe1" / "nerfinv" / "t"
+    rows = RunFolder(run).rows()
+    errors = np.array([r["rotation_deg"] for r in rows])
+    assert len(rows) == 6 and (errors[2:] < 10.0).all(), errors
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["starts"] == "bank" and summary["bank"]["views"] == 642
+    assert 0.72 < summary["target_radius_m"] < 1.1  # read off the model: the toy reaches 0.73 m from its centre
+
+
+def _quick(toy_run, sequence: Path, out: Path, **changes) -> InvertConfig:
+    return InvertConfig(load_config=toy_run[0], sequence=str(sequence), output_dir=out, name="e", timestamp="t",
+                        device="cpu", pixels=128, eval_pixels=512, bank=BankConfig(subdivisions=2),
+                        optimizer=OptimizerConfig(iterations=15), **changes)
+
+
+def test_the_default_path_never_reads_the_truth(toy_run, shirt, tmp_path):
+    estimates = {}
+    for poses in ("true", "none", "random"):
+        folder = _folder_of(shirt, tmp_path / poses, poses)
+        summary = Inversion.create(_quick(toy_run, folder, tmp_path / f"out-{poses}", stop=3)).run()
+        estimates[poses] = [row["c2w_model"] for row in RunFolder(Path(summary["run"])).rows()]
+    assert estimates["true"] == estimates["none"] == estimates["random"]
+
+
+def test_a_frame_without_the_object_keeps_the_prediction_and_the_run_goes_on(toy_run, shirt, tmp_path):
+    folder = _folder_of(shirt, tmp_path / "frames", "true")
+    second = sorted(folder.glob("*.png"))[1]
+    cv2.imwrite(str(second), np.zeros_like(cv2.imread(str(second))))
+    warnings: list[str] = []
+    summary = Inversion.create(_quick(toy_run, folder, tmp_path / "out", stop=3),
+                               Events(warn=warnings.append)).run()
+    rows = RunFolder(Path(summary["run"])).rows()
+    assert [r["object_found"] for r in rows] == [True, False, True]
+    assert rows[1]["c2w_model"] == rows[0]["c2w_model"]
+    assert summary["frames_without_object"] == 1 and summary["complete"]
+    assert any("no object found" in w and second.name in w for w in warnings)
+
+
+def test_a_mask_folder_that_does_not_match_the_frames_is_one_line_and_exit_code_2(toy_run, shirt, tmp_path,
+                                                                                    monkeypatch, capsys):
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    cv2.imwrite(str(masks / "unrelated.png"), np.zeros((50, 80), np.uint8))
+    monkeypatch.setattr(sys, "argv", ["ns-invert", "--load-config", str(toy_run[0]), "--sequence",
+                                      str(shirt / "roe1"), "--output-dir", str(tmp_path / "out"), "--masks",
+                                      str(masks)])
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint()
+    err = capsys.readouterr().err.strip()
+    assert exit_info.value.code == 2 and len(err.splitlines()) == 1 and "--masks" in err, err
+    assert not (tmp_path / "out").exists()
