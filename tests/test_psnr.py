@@ -83,8 +83,9 @@ def test_black_psnr_equals_an_independent_computation(blender_score, toy_run):
         rgba = np.asarray(Image.open(data / f"{frame['file_path'][2:]}.png"), dtype=np.float64) / 255.0
         over_black = rgba[..., :3] * rgba[..., 3:]
         values.append(-10.0 * np.log10(np.mean(over_black**2)))
-    assert blender_score.black_psnr == pytest.approx(float(np.mean(values)), abs=1e-9)
-    assert [v.black_psnr for v in blender_score.views] == pytest.approx(values, abs=1e-9)
+    # The reader holds images in float32: agreement to float32 rounding, far below the 0.01 dB printed.
+    assert blender_score.black_psnr == pytest.approx(float(np.mean(values)), abs=1e-5)
+    assert [v.black_psnr for v in blender_score.views] == pytest.approx(values, abs=1e-5)
     assert blender_score.mean_psnr == pytest.approx(float(np.mean([v.psnr for v in blender_score.views])))
     assert blender_score.margin_db == pytest.approx(blender_score.mean_psnr - blender_score.black_psnr)
     assert blender_score.margin_db > 3.0  # the trained toy model renders the object, not only black

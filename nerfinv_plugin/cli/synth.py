@@ -9,6 +9,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from nerfinv_plugin.cli import run
+from nerfinv_plugin.synth.camera_images import write_camera_images
 from nerfinv_plugin.synth.datasets import (
     TrainingSetSpec,
     speedplus_like_camera,
@@ -77,6 +78,9 @@ class Synth:
     """Samples per pixel for the path tracer."""
     training: TrainingSetSpec = field(default_factory=TrainingSetSpec)
     """The training set. Set train-views, val-views and test-views to 0 to render none."""
+    camera_images: bool = False
+    """Also write the training set as a camera delivers it into <out>/rgb: RGB JPEG images over black
+    without alpha and a nerfstudio transforms.json (ns-train nerfacto-tiny nerfstudio-data --data <out>/rgb)."""
     trajectory: TrajectoryOptions = field(default_factory=TrajectoryOptions)
     speedplus: SpeedPlusOptions = field(default_factory=SpeedPlusOptions)
 
@@ -93,6 +97,8 @@ class Synth:
             step = lambda: progress.advance(task)  # noqa: E731
             if n_train:
                 write_training_set(self.out, self.scene, self.training, self.seed, self.spp, step)
+                if self.camera_images:
+                    write_camera_images(self.out, self.out / "rgb")
             if specs:
                 camera = speedplus_like_camera(t.width, t.height)
                 write_shirt_trajectories(self.out, self.scene, specs, camera, t.distortion, self.seed,
@@ -104,9 +110,11 @@ class Synth:
         console.print(f"[green]wrote {self.out}[/green]")
         if n_train:
             console.print(f"train a model: ns-train nerfacto-tiny --data {self.out}")
+        if n_train and self.camera_images:
+            console.print(f"or on camera images: ns-train nerfacto-tiny nerfstudio-data --data {self.out / 'rgb'}")
         if sp.views:
-            console.print("train on the SPEED+ tree: ns-train nerfacto-tiny --pipeline.model.background-color black "
-                          f"speedplus-data --data {self.out / 'speedplus'}")
+            console.print(f"train on the SPEED+ tree: ns-train nerfacto-tiny speedplus-data --data "
+                          f"{self.out / 'speedplus'}")
 
 
 def entrypoint() -> None:

@@ -29,7 +29,7 @@ from torch import Tensor
 
 from nerfinv_plugin.geometry.frames import OPENCV_TO_OPENGL, look_at_c2w_opencv, rotmat_to_quat_wxyz
 from nerfinv_plugin.initialization.box_pose import BankView, pose_from_box
-from nerfinv_plugin.initialization.detect import Detection, detection_from_mask, find_object
+from nerfinv_plugin.initialization.detect import Detection, find_object
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import Intrinsics, render
 
@@ -48,7 +48,7 @@ class BankConfig:
     apart)."""
     in_plane: int = 36
     """In-plane angles per view (36: every 10 degrees)."""
-    render_px: int = 64
+    render_px: int = 48
     """Side of each rendered view (pixels); the object's bounding sphere fills 90% of it."""
     crop_px: int = 32
     """Side of the crops that are compared (pixels)."""
@@ -191,11 +191,16 @@ def bank_key(loaded: LoadedModel, centre: np.ndarray, radius: float, config: Ban
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:20]
 
 
+def bank_file(loaded: LoadedModel, centre: np.ndarray, radius: float, config: BankConfig) -> Path:
+    """Where the bank of these settings is cached."""
+    return cache_root() / f"bank-{bank_key(loaded, centre, radius, config)}.npz"
+
+
 def cached_bank(loaded: LoadedModel, centre: np.ndarray, radius: float, config: BankConfig,
                 on_build: Callable[[int], Callable[[int], None]] | None = None) -> tuple[ViewBank, Path, bool]:
     """The bank from the cache, or rendered and cached; ``(bank, cache file, was it built)``.
     ``on_build(total_views)`` is called before rendering and returns the per-batch ``advance``."""
-    path = cache_root() / f"bank-{bank_key(loaded, centre, radius, config)}.npz"
+    path = bank_file(loaded, centre, radius, config)
     if path.is_file():
         try:
             return ViewBank.load(path), path, False
@@ -207,18 +212,29 @@ def cached_bank(loaded: LoadedModel, centre: np.ndarray, radius: float, config: 
     return bank, path, True
 
 
-def crop_square(image: np.ndarray, centre: tuple[float, float], side: float, out_px: int) -> np.ndarray:
-    """The square of ``side`` pixels about ``centre`` (continuous coordinates), zero outside the image,
-    resized to ``out_px`` by area averaging; float32."""
-    half = side / 2.0
-    x0, y0 = int(np.floor(centre[0] - half)), int(np.floor(centre[1] - half))
-    n = max(1, int(np.ceil(side)))
-    height, width = image.shape[:2]
-    canvas = np.zeros((n, n) + image.shape[2:], dtype=np.float32)
-    sx0, sy0, sx1, sy1 = max(x0, 0), max(y0, 0), min(x0 + n, width), min(y0 + n, height)
-    if sx1 > sx0 and sy1 > sy0:
-        canvas[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = image[sy0:sy1, sx0:sx1]
-    return cv2.resize(canvas, (out_px, out_px), interpolation=cv2.INTER_AREA)
+def crop_affine(angle: float, centre: tuple[float, float], side: float, out_px: int,
+                pivot: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """The 2x3 matrix (cv2 pixel-index coordinates) that turns an image by ``angle`` (radians, x right,
+    y down) about ``pivot`` and then maps the square of ``side`` pixels about ``centre`` (continuous
+    coordinates, in the turned image) onto ``out_px`` x ``out_px`` pixels."""
+    c, s = np.cos(angle), np.sin(angle)
+    turn = np.array([[c, -s], [s, c]])
+    scale = out_px / side
+    # continuous coordinates x = index + 0.5 on both sides
+    shift = -turn @ np.asarray(pivot) + np.asarray(pivot) - np.asarray(centre) + side / 2.0
+    matrix = np.zeros((2, 3))
+    matrix[:, :2] = scale * turn
+    matrix[:, 2] = scale * (turn @ np.array([0.5, 0.5]) + shift) - 0.5
+    return matrix
+
+
+def crop(image: np.ndarray, matrix: np.ndarray, side: float, out_px: int) -> np.ndarray:
+    """``image`` (float32, [H, W] or [H, W, C]) through ``matrix`` (from :func:`crop_affine`), zero outside,
+    smoothed first in proportion to the shrink so that small crops of large objects do not alias."""
+    shrink = side / out_px
+    if shrink > 1.0:
+        image = cv2.GaussianBlur(image, (0, 0), 0.5 * np.sqrt(shrink**2 - 1.0))
+    return cv2.warpAffine(image, matrix, (out_px, out_px), flags=cv2.INTER_LINEAR, borderValue=0.0)
 
 
 def grey(rgb: np.ndarray) -> np.ndarray:
@@ -244,9 +260,20 @@ class Features:
 def crop_features(image: np.ndarray, detection: Detection, out_px: int) -> Features:
     """The features of the crop about ``detection``'s box in ``image`` (RGB uint8)."""
     side = CROP_MARGIN * detection.size
-    mask = crop_square(detection.mask.astype(np.float32), detection.centre, side, out_px).reshape(-1)
-    levels = crop_square(grey(image), detection.centre, side, out_px).reshape(-1)
-    return Features(mask, _normalised(levels[None])[0])
+    matrix = crop_affine(0.0, detection.centre, side, out_px)
+    both = crop(np.dstack([detection.mask.astype(np.float32), grey(image)]), matrix, side, out_px)
+    return Features(both[..., 0].reshape(-1), _normalised(both[..., 1].reshape(1, -1))[0])
+
+
+def turned_boxes(mask: np.ndarray, angles: np.ndarray, pivot: tuple[float, float]) -> np.ndarray:
+    """Boxes [A, 4] (x0, y0, x1, y1, continuous coordinates) of ``mask`` turned by each angle about
+    ``pivot``: the extremes of its turned pixel centres, half a pixel out (exact at angle 0)."""
+    rows, cols = np.nonzero(mask)
+    points = np.stack([cols + 0.5, rows + 0.5], 1) - np.asarray(pivot)
+    c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    x = c * points[:, 0] - s * points[:, 1] + pivot[0]
+    y = s * points[:, 0] + c * points[:, 1] + pivot[1]
+    return np.stack([x.min(1) - 0.5, y.min(1) - 0.5, x.max(1) + 0.5, y.max(1) + 0.5], 1)
 
 
 def _rolled(w2c: np.ndarray, angle: float) -> np.ndarray:
@@ -271,29 +298,28 @@ class BankEntries:
 
 
 def bank_entries(bank: ViewBank, config: BankConfig) -> BankEntries:
-    """Turn every view through the in-plane angles; find its box and crop it like an observed frame."""
+    """Turn every view through the in-plane angles, box the object in each turned image and crop it as an
+    observed frame is cropped (one affine warp per entry). Views in which the detector finds nothing are
+    left out."""
     side = bank.rgb.shape[1]
-    centre_px = (side / 2.0 - 0.5, side / 2.0 - 0.5)  # the principal point, in cv2's pixel-index coordinates
+    pivot = (side / 2.0, side / 2.0)  # the principal point: turning about it is rolling the camera
+    angles = 2.0 * np.pi * np.arange(config.in_plane) / config.in_plane
     masks, greys, views, quaternions = [], [], [], []
     for index in range(len(bank.rgb)):
-        rgb = bank.rgb[index]
-        found = find_object(rgb)
-        mask = found.mask if found is not None else bank.accumulation[index] >= 128
+        found = find_object(bank.rgb[index])
+        if found is None:
+            continue
         w2c = (bank.c2w[index] @ OPENCV_TO_OPENGL)[:3, :3].T
-        stack = np.dstack([mask.astype(np.float32), grey(rgb)])
-        for step in range(config.in_plane):
-            angle = 2.0 * np.pi * step / config.in_plane
-            matrix = cv2.getRotationMatrix2D(centre_px, -np.degrees(angle), 1.0)  # cv2: positive = anticlockwise
-            turned = cv2.warpAffine(stack, matrix, (side, side), flags=cv2.INTER_LINEAR)
-            detection = detection_from_mask(turned[..., 0] >= 0.5)
-            if detection is None:
-                continue
-            crop_side = CROP_MARGIN * detection.size
-            masks.append(crop_square(turned[..., 0], detection.centre, crop_side, config.crop_px).reshape(-1))
-            greys.append(crop_square(turned[..., 1], detection.centre, crop_side, config.crop_px).reshape(-1))
+        stack = np.dstack([found.mask.astype(np.float32), grey(bank.rgb[index])])
+        for angle, box in zip(angles, turned_boxes(found.mask, angles, pivot)):
+            centre = ((box[0] + box[2]) / 2.0, (box[1] + box[3]) / 2.0)
+            size = float(max(box[2] - box[0], box[3] - box[1]))
+            crop_side = CROP_MARGIN * size
+            both = crop(stack, crop_affine(angle, centre, crop_side, config.crop_px, pivot), crop_side, config.crop_px)
+            masks.append(both[..., 0].reshape(-1))
+            greys.append(both[..., 1].reshape(-1))
             rotation = _rolled(w2c, angle)
-            offset = (detection.centre[0] - side / 2.0, detection.centre[1] - side / 2.0)
-            views.append(BankView(rotation, bank.range, bank.focal, offset, detection.size))
+            views.append(BankView(rotation, bank.range, bank.focal, (centre[0] - pivot[0], centre[1] - pivot[1]), size))
             quaternions.append(rotmat_to_quat_wxyz(rotation))
     return BankEntries(np.array(masks, dtype=np.float32), _normalised(np.array(greys, dtype=np.float32)), views,
                        np.array(quaternions))

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from nerfinv_plugin.initialization.bank import BankConfig, BankEntries, bank_entries, cached_bank, hypotheses
 from nerfinv_plugin.initialization.detect import Detection
+from nerfinv_plugin.initialization.extent import object_radius
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import Intrinsics, render
 
@@ -34,8 +35,14 @@ class Initializer:
     build_s: float
 
     @classmethod
-    def create(cls, loaded: LoadedModel, centre: np.ndarray, radius: float, config: BankConfig,
+    def create(cls, loaded: LoadedModel, centre: np.ndarray, config: BankConfig,
                on_build: Callable[[int], Callable[[int], None]] | None = None) -> "Initializer":
+        """The bank about ``centre`` (model frame), framing the sphere rays are bounded to, or the object's
+        extent read off the model when they are not bounded."""
+        if loaded.target_sphere is not None:
+            radius = float(loaded.target_sphere[1])
+        else:
+            radius = object_radius(loaded, torch.as_tensor(centre, dtype=torch.float32, device=loaded.device))
         bank, path, built = cached_bank(loaded, centre, radius, config, on_build)
         return cls(loaded, np.asarray(centre, dtype=np.float64), config, bank_entries(bank, config), path, built,
                    bank.build_s)

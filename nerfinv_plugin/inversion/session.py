@@ -28,7 +28,7 @@ from nerfinv_plugin.initialization.extent import object_radius
 from nerfinv_plugin.initialization.initializer import Initializer, silhouette_iou
 from nerfinv_plugin.inversion import starts
 from nerfinv_plugin.inversion.optimizer import StepResult
-from nerfinv_plugin.inversion.settings import InvertConfig, read_config, write_config
+from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, read_config, write_config
 from nerfinv_plugin.inversion.tracker import Frame, StepRecord, Tracker, TrackerState
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.loading import load_model
@@ -100,6 +100,28 @@ def _rotation_error(poses: Tensor, truth: Tensor) -> Tensor:
     return geodesic_deg(poses[:, :3, :3], truth[None, :3, :3].expand_as(poses[:, :3, :3]).to(poses))
 
 
+def bound_rays(loaded: LoadedModel, centre: Tensor, render: RenderConfig) -> float | None:
+    """Bound rays to a sphere about ``centre`` (model frame) that holds the object, measured on the model
+    unless ``render`` gives its radius, and take the fewer samples that then suffice, unless ``render`` says
+    otherwise. Returns the radius in dataset metres when it was measured here."""
+    measured = None
+    if render.bound:
+        if render.target_radius_m is not None:
+            radius = render.target_radius_m * loaded.dataparser_scale
+        else:
+            radius = object_radius(loaded, centre.to(loaded.device))
+            measured = radius / loaded.dataparser_scale
+        loaded.target_sphere = (centre.to(loaded.device), radius)
+    proposal, nerf = render.proposal_samples, render.nerf_samples
+    sampler = getattr(loaded.model, "proposal_sampler", None)
+    if render.bound and proposal is None and nerf is None and sampler is not None:
+        proposal = BOUNDED_PROPOSAL_SAMPLES if len(sampler.num_proposal_samples_per_ray) == 2 else None
+        nerf = BOUNDED_NERF_SAMPLES
+    if proposal is not None or nerf is not None:
+        set_sample_counts(loaded, proposal, nerf)
+    return measured
+
+
 @dataclass
 class Inversion:
     """A run folder and the settings it runs with."""
@@ -134,7 +156,9 @@ class Inversion:
                   for f in sequence.frames]
         detections = self._detections(sequence)
         centre = torch.as_tensor(loaded.point_to_model(np.asarray(c.target)), dtype=torch.float32)
-        self._bound_rays(loaded, centre)
+        radius = bound_rays(loaded, centre, c.render)
+        if radius is not None:
+            self.events.info(f"object radius {radius:.3g} m, read off the model's density (rays are bounded to it)")
         initializer = None
         if c.starts.source == "bank":
             initializer = self._initializer(loaded, centre)
@@ -204,34 +228,9 @@ class Inversion:
             raise InversionError(f"--masks: {err}") from err
         return [detection_from_mask(mask) for mask in masks]
 
-    def _bound_rays(self, loaded: LoadedModel, centre: Tensor) -> None:
-        """Bound rays to a sphere that holds the object (measured on the model unless given) and take the
-        fewer samples that then suffice, unless the settings say otherwise."""
-        r = self.config.render
-        if r.bound:
-            if r.target_radius_m is not None:
-                radius = r.target_radius_m * loaded.dataparser_scale
-            else:
-                radius = object_radius(loaded, centre.to(loaded.device))
-                self.events.info(f"object radius {radius / loaded.dataparser_scale:.3g} m, read off the model's "
-                                 "density (rays are bounded to it)")
-            loaded.target_sphere = (centre.to(loaded.device), radius)
-        proposal, nerf = r.proposal_samples, r.nerf_samples
-        sampler = getattr(loaded.model, "proposal_sampler", None)
-        if r.bound and proposal is None and nerf is None and sampler is not None:
-            proposal = BOUNDED_PROPOSAL_SAMPLES if len(sampler.num_proposal_samples_per_ray) == 2 else None
-            nerf = BOUNDED_NERF_SAMPLES
-        if proposal is not None or nerf is not None:
-            set_sample_counts(loaded, proposal, nerf)
-
     def _initializer(self, loaded: LoadedModel, centre: Tensor) -> Initializer:
         """The view bank, from the cache or rendered now."""
-        if loaded.target_sphere is None:
-            radius = object_radius(loaded, centre.to(loaded.device))
-        else:
-            radius = float(loaded.target_sphere[1])
-        initializer = Initializer.create(loaded, centre.numpy().astype(np.float64), radius, self.config.bank,
-                                         self.events.bank)
+        initializer = Initializer.create(loaded, centre.numpy().astype(np.float64), self.config.bank, self.events.bank)
         how = f"rendered in {initializer.build_s:.1f} s" if initializer.built else "read from the cache"
         self.events.info(f"view bank: {self.config.bank.views} views x {self.config.bank.in_plane} in-plane angles, "
                          f"{how} ({initializer.cache})")

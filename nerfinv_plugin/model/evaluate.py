@@ -335,8 +335,8 @@ def detect_format(data_dir: Path) -> DataFormat:
             (data_dir / "camera.json").is_file() and any((data_dir / d).is_dir() for d in SPEEDPLUS_DOMAINS)):
         return "speedplus"
     raise DataFormatError(f"cannot tell the format of {data_dir}: it holds no transforms_<split>.json (Blender), "
-                          f"transforms.json (nerfstudio) or camera.json with synthetic/ (SPEED+); pass the folder "
-                          f"the run was trained on, or --format")
+                          f"transforms.json (nerfstudio), synthetic/validation.json or camera.json with a domain "
+                          f"folder (SPEED+); pass the folder the run was trained on, or --format")
 
 
 def run_dataparser(loaded: LoadedModel | None) -> object | None:
