@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import shutil
+from collections.abc import Callable
 from importlib.metadata import version
 from pathlib import Path
 
@@ -25,8 +26,13 @@ TOY_SCENE = {"scene": "toy", "seed": 0, "spp": 64,
 TOY_TRAINING = {"iterations": 1000, "rays_per_batch": 512}
 
 
+TOY_RGB_TRAINING = {**TOY_TRAINING, "dataparser": "nerfstudio-data"}
+"""The same scene as a camera delivers it (RGB JPEG over black, no alpha), trained through nerfstudio-data
+with its defaults: the way users train."""
+
 TRAINING_SOURCES = ("synth/scenes.py", "synth/render.py", "synth/trajectories.py", "synth/datasets.py",
-                    "geometry/frames.py", "model/nerfacto_tiny.py", "model/fused_hash.py", "model/training.py")
+                    "synth/camera_images.py", "geometry/frames.py", "model/nerfacto_tiny.py", "model/fused_hash.py",
+                    "model/training.py")
 """The code whose behaviour determines the trained fixture (rendering the data and training on it)."""
 
 
@@ -57,11 +63,22 @@ def _build_toy_run(folder: Path) -> Path:
                                TOY_TRAINING["rays_per_batch"], timestamp="fixture")
 
 
-@pytest.fixture(scope="session")
-def toy_run() -> tuple[Path, Path]:
-    """``(config.yml, data folder)`` of nerfacto-tiny trained on the toy scene, cached across sessions."""
-    folder = cache_root() / f"toy-{cache_key(TOY_SCENE, TOY_TRAINING)}"
-    config = folder / "outputs" / "toy" / "nerfacto-tiny" / "fixture" / "config.yml"
+def _build_toy_rgb_run(folder: Path) -> Path:
+    from nerfinv_plugin.model.training import train_nerfacto_tiny
+    from nerfinv_plugin.synth.camera_images import write_camera_images
+
+    data = folder / "data"
+    write_training_set(data, TOY_SCENE["scene"], TOY_SCENE["spec"], TOY_SCENE["seed"], TOY_SCENE["spp"], _noop)
+    write_camera_images(data, folder / "rgb")
+    return train_nerfacto_tiny(folder / "rgb", folder / "outputs", "toy-rgb", TOY_RGB_TRAINING["iterations"],
+                               TOY_RGB_TRAINING["rays_per_batch"], timestamp="fixture",
+                               dataparser=TOY_RGB_TRAINING["dataparser"])
+
+
+def _cached_run(name: str, settings: tuple, build: Callable[[Path], Path], experiment: str) -> tuple[Path, Path]:
+    """``(config.yml, data folder)`` of a run built by ``build`` once per cache key."""
+    folder = cache_root() / f"{name}-{cache_key(*settings)}"
+    config = folder / "outputs" / experiment / "nerfacto-tiny" / "fixture" / "config.yml"
     folder.parent.mkdir(parents=True, exist_ok=True)
     # Test sessions running side by side must not build (and delete) the same folder at once.
     with open(folder.parent / f"{folder.name}.lock", "w") as lock:
@@ -69,6 +86,20 @@ def toy_run() -> tuple[Path, Path]:
         if not (folder / "complete").is_file():
             shutil.rmtree(folder, ignore_errors=True)
             folder.mkdir(parents=True)
-            assert _build_toy_run(folder) == config
+            assert build(folder) == config
             (folder / "complete").write_text("trained\n")
     return config, folder / "data"
+
+
+@pytest.fixture(scope="session")
+def toy_run() -> tuple[Path, Path]:
+    """``(config.yml, data folder)`` of nerfacto-tiny trained on the toy scene, cached across sessions."""
+    return _cached_run("toy", (TOY_SCENE, TOY_TRAINING), _build_toy_run, "toy")
+
+
+@pytest.fixture(scope="session")
+def toy_rgb_run() -> tuple[Path, Path]:
+    """``(config.yml, data folder)`` of nerfacto-tiny trained the way users train: the toy scene's RGB
+    images without alpha through nerfstudio-data; the data folder holds the RGBA originals and their Blender
+    splits, for scoring on the same held-out views as :func:`toy_run`."""
+    return _cached_run("toy-rgb", (TOY_SCENE, TOY_RGB_TRAINING), _build_toy_rgb_run, "toy-rgb")
