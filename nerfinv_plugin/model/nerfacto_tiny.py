@@ -10,9 +10,8 @@ machine without internet needs:
 - planes and the scale of the scene contraction fitted to the training cameras (so that the model learns
   the same scene whatever scale the dataparser gives it: metres for blender-data, a unit cube of cameras
   for nerfstudio-data), kept in the checkpoint;
-- a random background behind the training images; RGB images without alpha (an object over black space)
-  get their alpha from a threshold (a random background behind an image without alpha can only be matched
-  by filling space with black: the model then renders nothing);
+- a random background behind RGBA training images and black behind RGB ones (a random background behind
+  an image without alpha can only be matched by filling space with black: the model then renders nothing);
 - the camera optimizer off so that the model frame stays the ground-truth frame, and evaluation/viewer
   settings that never block or render full images often.
 
@@ -41,10 +40,8 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
-from scipy import ndimage
 from torch import Tensor
 
-from nerfinv_plugin.initialization.detect import find_object
 from nerfinv_plugin.model.fused_hash import use_fused_hash_encoding
 
 
@@ -142,7 +139,6 @@ class NerfactoTinyModel(NerfactoModel):
         with lpips_disabled():
             super().populate_modules()
         use_fused_hash_encoding(self)
-        self.object_masks: Tensor | None = None
         c = self.config
         self.collider = FittedNearFar(c.near_plane if c.near_plane is not None else 0.05,
                                       c.far_plane if c.far_plane is not None else 1000.0)
@@ -162,38 +158,26 @@ class NerfactoTinyModel(NerfactoModel):
         return fit
 
     def get_loss_dict(self, outputs: dict, batch: dict, metrics_dict: dict | None = None) -> dict:
-        return super().get_loss_dict(outputs, self._with_alpha(batch), metrics_dict)
+        with _black_behind_rgb(self, batch["image"]):
+            return super().get_loss_dict(outputs, batch, metrics_dict)
 
     def get_metrics_dict(self, outputs: dict, batch: dict) -> dict:
-        return super().get_metrics_dict(outputs, self._with_alpha(batch))
-
-    def set_object_masks(self, masks: Tensor | None) -> None:
-        """Where each RGB training image [N, H, W] shows the object (not saved with the checkpoint)."""
-        self.object_masks = masks
-
-    def _with_alpha(self, batch: dict) -> dict:
-        """RGB training pixels get an alpha from the object mask of their image (see
-        :func:`object_mask`), so that the random background teaches opacity as it does behind RGBA images;
-        on a plain black background a dark surface and empty space look alike, and the model learned grey,
-        half-transparent objects (docs/nerfacto-tiny.md)."""
-        image = batch["image"]
-        masks = self.object_masks
-        if image.shape[-1] != 3 or masks is None or not self.training:
-            return batch
-        camera, row, col = batch["indices"].to(masks.device).unbind(-1)
-        alpha = masks[camera, row, col].to(image)[:, None]
-        return {**batch, "image": torch.cat([image, alpha], -1)}
+        with _black_behind_rgb(self, batch["image"]):
+            return super().get_metrics_dict(outputs, batch)
 
 
-def object_mask(image: np.ndarray) -> np.ndarray:
-    """The object in a training image of a dark scene (``uint8`` RGB): found on the background as
-    ``ns-invert`` finds it in observed frames, with enclosed holes filled (a dark panel between bright edges
-    is still the object) and one pixel added around it for the anti-aliased edge. All False when nothing
-    is found."""
-    found = find_object(image)
-    if found is None:
-        return np.zeros(image.shape[:2], dtype=bool)
-    return ndimage.binary_dilation(ndimage.binary_fill_holes(found.mask), iterations=1)
+@contextlib.contextmanager
+def _black_behind_rgb(model: NerfactoModel, image: Tensor) -> Iterator[None]:
+    """A random background only where the training image has alpha to composite it behind; behind an RGB
+    image (what SPEED+, SHIRT and cameras give: the object over black space) the background is black."""
+    renderer = model.renderer_rgb
+    original = renderer.background_color
+    if image.shape[-1] == 3 and original == "random":
+        renderer.background_color = "black"
+    try:
+        yield
+    finally:
+        renderer.background_color = original
 
 
 class NerfactoTinyPipeline(VanillaPipeline):
@@ -211,23 +195,6 @@ class NerfactoTinyPipeline(VanillaPipeline):
             fit = model.fit_to_cameras(centres, float(half.min()))
             CONSOLE.print(f"nerfacto-tiny: near {fit.near:.3f}, far {fit.far:.3f}, contraction unit {fit.unit:.3f} "
                           f"(model units, from {len(centres)} training cameras)")
-            model.set_object_masks(_object_masks(self.datamanager.train_dataset, model))
-
-
-
-
-def _object_masks(dataset, model: NerfactoTinyModel) -> Tensor | None:
-    """Object masks [N, H, W] of RGB training images of one size, when the model wants them; ``None`` for
-    RGBA images (they carry their alpha) or images of several sizes (then trained on black)."""
-    if not model.config.alpha_from_mask or model.config.background_color != "random" or len(dataset) == 0:
-        return None
-    images = [dataset.get_numpy_image(i) for i in range(len(dataset))]
-    if images[0].shape[-1] != 3 or len({image.shape for image in images}) != 1:
-        return None
-    masks = np.stack([object_mask(image) for image in images])
-    CONSOLE.print(f"nerfacto-tiny: alpha from the object masks of {len(images)} RGB training images "
-                  f"(object on {100 * masks.mean():.1f}% of their pixels)")
-    return torch.as_tensor(masks, device=model.device)
 
 
 @dataclass
@@ -255,13 +222,8 @@ class NerfactoTinyModelConfig(NerfactoModelConfig):
     camera and leaves an object 5 m away with one or two samples, which it never learns."""
     background_color: Literal["random", "last_sample", "black", "white"] = "random"
     """With RGBA training images, a random background during training teaches opacity (on a fixed black
-    one a dark object and a half-transparent one look alike, and colours wash out to grey); RGB training
-    images get their alpha from the object's mask (alpha-from-mask). Renders for inversion are over black."""
-    alpha_from_mask: bool = True
-    """RGB training images (no alpha) show the object over black space: its mask, found as ns-invert finds
-    the object in observed frames, becomes their alpha behind the random background. Off: RGB images are
-    trained on a black background (for images whose background is not black, also set background-color
-    last_sample)."""
+    one a dark object and a half-transparent one look alike, and colours wash out to grey); behind RGB
+    training images it is black (the object over black space). Renders for inversion are over black."""
     implementation: Literal["tcnn", "torch"] = "torch"
     """torch runs everywhere; a tcnn checkpoint cannot be loaded into a torch model, so keep it fixed."""
     num_levels: int = 8
