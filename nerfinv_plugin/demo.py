@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
-from nerfinv_plugin.inversion.settings import InvertConfig
+from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, StartConfig
 from nerfinv_plugin.model.loading import Device
 from nerfinv_plugin.report.results import SUMMARY
 from nerfinv_plugin.synth.datasets import (
@@ -45,6 +45,10 @@ class DemoSettings:
     seed: int = 0
     """Seeds the rendered scene, the trajectory and the inversion."""
     training_set: TrainingSetSpec = field(default_factory=TrainingSetSpec)
+    starts: StartConfig = field(default_factory=StartConfig)
+    """Where the inversion starts: the view bank, as the bare ns-invert does."""
+    render: RenderConfig = field(default_factory=RenderConfig)
+    """How rays are sampled: bounded to the object's extent read off the model, as the bare ns-invert does."""
 
     @property
     def trajectory(self) -> Path:
@@ -64,7 +68,7 @@ class DemoSettings:
         return InvertConfig(
             load_config=self.model_config, sequence=str(self.trajectory), name=EXPERIMENT, timestamp=TIMESTAMP,
             output_dir=self.output_dir, device=self.device, seed=self.seed,
-            optimizer=OptimizerConfig(iterations=self.iterations))
+            starts=self.starts, render=self.render, optimizer=OptimizerConfig(iterations=self.iterations))
 
 
 def data_rendered(settings: DemoSettings) -> bool:

@@ -23,6 +23,7 @@ from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.session import Events, Inversion
 from nerfinv_plugin.inversion.settings import (
     InvertConfig,
+    RenderConfig,
     StartConfig,
     defaults_with_preset,
     presets_dir,
@@ -266,9 +267,16 @@ def test_resuming_a_folder_that_is_not_a_run_says_so(tmp_path, monkeypatch, caps
     assert code == 2 and "not an ns-invert run folder" in err
 
 
+PLUMBING_STARTS = StartConfig(source="truth-offset", count=4)
+"""A model trained for 30 iterations has learned nothing a view bank could match, nor a density to read
+the object's size from: the demo's stage reuse is tested with starts placed from the truth and a given
+radius (the bare path is tested in test_pose_from_nothing.py)."""
+
+
 def test_demo_runs_every_stage_once_and_reuses_them(tmp_path, monkeypatch, capsys):
     demo = Demo(data_dir=tmp_path / "data", output_dir=tmp_path / "outputs", frames=2, training_iterations=30,
-                iterations=3, device="cpu", training_set=TrainingSetSpec(8, 1, 1, 40, 25))
+                iterations=3, device="cpu", training_set=TrainingSetSpec(8, 1, 1, 40, 25), starts=PLUMBING_STARTS,
+                render=RenderConfig(target_radius_m=1.0))
     demo.main()
     run = demo.run_dir
     rows = RunFolder(run).rows()
@@ -286,7 +294,8 @@ def test_demo_runs_every_stage_once_and_reuses_them(tmp_path, monkeypatch, capsy
 def test_interrupted_demo_inversion_continues(tmp_path):
     """An interrupted demo inversion leaves a run folder; the next demo resumes it instead of refusing."""
     demo = Demo(data_dir=tmp_path / "data", output_dir=tmp_path / "outputs", frames=2, training_iterations=30,
-                iterations=3, device="cpu", training_set=TrainingSetSpec(8, 1, 1, 40, 25))
+                iterations=3, device="cpu", training_set=TrainingSetSpec(8, 1, 1, 40, 25), starts=PLUMBING_STARTS,
+                render=RenderConfig(target_radius_m=1.0))
     render_data(demo, lambda: None)
     train_model(demo)
 
@@ -314,11 +323,11 @@ def test_prior_starts_surround_the_given_label_and_need_one(toy_run, shirt, tmp_
     config = _config(toy_run, shirt, tmp_path, starts=starts)
     loaded = load_model(toy_run[0], device="cpu")
     sequence = read_sequence(config.sequence, 0, 1)
-    poses = Inversion.create(config)._starts(loaded, sequence, torch.zeros(3))
+    poses = Inversion.create(config)._starts(loaded, sequence, torch.zeros(3), [None], None)
     truth = torch.as_tensor(loaded.dataset_to_model(sequence.frames[0].c2w_true), dtype=torch.float32)
     torch.testing.assert_close(poses[0], truth, atol=1e-5, rtol=1e-5)  # the first start is the prior itself
     angles = geodesic_deg(poses[:, :3, :3], truth[None, :3, :3].expand(6, 3, 3))
     assert float(angles[1:].min()) > 0.1 and float(angles.max()) <= 10.0 * np.sqrt(3) + 1e-3
     with pytest.raises(InversionError, match="prior-q"):
         Inversion.create(replace(config, starts=StartConfig(source="prior")))._starts(loaded, sequence,
-                                                                                     torch.zeros(3))
+                                                                                     torch.zeros(3), [None], None)

@@ -85,7 +85,7 @@ def test_the_default_path_never_reads_the_truth(toy_run, shirt, tmp_path):
 
 def test_a_frame_without_the_object_keeps_the_prediction_and_the_run_goes_on(toy_run, shirt, tmp_path):
     folder = _folder_of(shirt, tmp_path / "frames", "true")
-    second = sorted(folder.glob("*.png"))[1]
+    second = sorted(p for p in folder.iterdir() if p.suffix in (".png", ".jpg"))[1]
     cv2.imwrite(str(second), np.zeros_like(cv2.imread(str(second))))
     warnings: list[str] = []
     summary = Inversion.create(_quick(toy_run, folder, tmp_path / "out", stop=3),

@@ -13,7 +13,7 @@ from torch import Tensor
 from nerfinv_plugin.initialization.bank import BankConfig, BankEntries, bank_entries, cached_bank, hypotheses
 from nerfinv_plugin.initialization.detect import Detection
 from nerfinv_plugin.initialization.extent import object_radius
-from nerfinv_plugin.model.loaded import LoadedModel
+from nerfinv_plugin.model.loaded import LoadedModel, ModelLoadError
 from nerfinv_plugin.model.render import Intrinsics, render
 
 SILHOUETTE_RAYS = 4096
@@ -44,7 +44,11 @@ class Initializer:
         else:
             radius = object_radius(loaded, torch.as_tensor(centre, dtype=torch.float32, device=loaded.device))
         bank, path, built = cached_bank(loaded, centre, radius, config, on_build)
-        return cls(loaded, np.asarray(centre, dtype=np.float64), config, bank_entries(bank, config), path, built,
+        entries = bank_entries(bank, config)
+        if not entries.views:
+            raise ModelLoadError(f"the model renders nothing from any of the bank's {config.views} viewpoints about "
+                                 "the target: is --target the object's centre, and did the model learn it?")
+        return cls(loaded, np.asarray(centre, dtype=np.float64), config, entries, path, built,
                    bank.build_s)
 
     def poses(self, image: np.ndarray, detection: Detection, intrinsics: Intrinsics, count: int) -> Tensor:
