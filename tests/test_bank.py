@@ -112,7 +112,7 @@ def test_an_in_plane_angle_of_the_bank_is_a_rolled_camera(toy_model):
     bank = render_bank(toy_model, centre, radius, config)
     entries = bank_entries(bank, config)
     assert len(entries.views) == config.views * config.in_plane
-    intrinsics, _ = bank_intrinsics(config)
+    intrinsics = bank_intrinsics(config)
     c2w_cv = np.eye(4)
     c2w_cv[:3, :3] = entries.views[1].w2c_rotation.T
     c2w_cv[:3, 3] = bank.c2w[0][:3, 3]

@@ -50,10 +50,9 @@ def bank_recall(loaded: LoadedModel, initializer: Initializer, sequence: Sequenc
         hits1.append(errors[0] < threshold_deg)
         hitsk.append(errors.min() < threshold_deg)
         best.append(float(errors.min()))
-        true_range = float(torch.linalg.norm(truth[:3, 3] - torch.as_tensor(initializer.centre, dtype=torch.float32)))
-        found_range = float(torch.linalg.norm(poses[0, :3, 3] - torch.as_tensor(initializer.centre,
-                                                                                 dtype=torch.float32)))
-        ranges.append(abs(found_range - true_range) / true_range)
+        centre = torch.as_tensor(initializer.centre, dtype=torch.float32)
+        true_range = float(torch.linalg.norm(truth[:3, 3] - centre))
+        ranges.append(abs(float(torch.linalg.norm(poses[0, :3, 3] - centre)) - true_range) / true_range)
     if not best:
         return Recall(name, 0, skipped, float("nan"), float("nan"), float("nan"), float("nan"), [])
     return Recall(name, len(best), skipped, float(np.mean(hits1)), float(np.mean(hitsk)), float(np.median(best)),

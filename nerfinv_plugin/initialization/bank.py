@@ -131,20 +131,21 @@ class ViewBank:
             return cls(data["c2w"], data["rgb"], data["accumulation"], data["centre"], radius, range_, focal, build_s)
 
 
-def bank_intrinsics(config: BankConfig) -> tuple[Intrinsics, float]:
-    """The square pinhole camera of the renders, and their range in object radii."""
+def bank_intrinsics(config: BankConfig) -> Intrinsics:
+    """The square pinhole camera of the renders: the object's bounding sphere, seen from
+    ``config.range_radii`` radii away, fills 90% of it."""
     half_angle = np.arcsin(1.0 / config.range_radii)
     focal = 0.5 * config.render_px * 0.9 / np.tan(half_angle)
     side = config.render_px
-    return Intrinsics(focal, focal, side / 2, side / 2, side, side), config.range_radii
+    return Intrinsics(focal, focal, side / 2, side / 2, side, side)
 
 
 def render_bank(loaded: LoadedModel, centre: np.ndarray, radius: float, config: BankConfig,
                 advance: Callable[[int], None] = lambda views: None) -> ViewBank:
     """Render every viewpoint (forward only, in batches); ``advance(n)`` after each batch of ``n`` views."""
     tic = time.perf_counter()
-    intrinsics, radii = bank_intrinsics(config)
-    distance = radii * radius
+    intrinsics = bank_intrinsics(config)
+    distance = config.range_radii * radius
     eyes = np.asarray(centre, dtype=np.float64) + distance * icosphere(config.subdivisions)
     c2w = np.array([look_at_c2w_opencv(eye, centre) @ OPENCV_TO_OPENGL for eye in eyes])
     side = config.render_px

@@ -10,7 +10,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from nerfinv_plugin.initialization.bank import BankConfig, BankEntries, bank_entries, cached_bank, hypotheses
+from nerfinv_plugin.initialization.bank import (
+    BankConfig,
+    BankEntries,
+    bank_entries,
+    cached_bank,
+    hypotheses,
+    hypothesis_poses,
+)
 from nerfinv_plugin.initialization.detect import Detection
 from nerfinv_plugin.initialization.extent import object_radius
 from nerfinv_plugin.model.loaded import LoadedModel, ModelLoadError
@@ -53,8 +60,8 @@ class Initializer:
 
     def poses(self, image: np.ndarray, detection: Detection, intrinsics: Intrinsics, count: int) -> Tensor:
         """The ``count`` best hypotheses [K, 4, 4] (model frame, float32) for the object in ``image``."""
-        found = hypotheses(self.entries, image, detection, intrinsics, self.centre, count, self.config)
-        return torch.as_tensor(np.array([h.c2w for h in found]), dtype=torch.float32)
+        return hypothesis_poses(hypotheses(self.entries, image, detection, intrinsics, self.centre, count,
+                                           self.config))
 
 
 def silhouette_iou(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, mask: np.ndarray) -> float:

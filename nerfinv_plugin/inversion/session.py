@@ -197,17 +197,15 @@ class Inversion:
             wall = time.perf_counter() - tic
             elapsed += wall
             frame_time += wall
-            steps.append(self._step_row(record, k, self._frame_number(k), step_index, wall))
+            steps.append(self._step_row(record, k, self._frame_number(k), step_index, wall, reinitialized))
             if record.result.dropped:
                 self.events.warn(f"frame {k} ({frames[k].name}): dropped candidate(s) "
                                  f"{', '.join(map(str, record.result.dropped))} (non-finite pose, loss or "
                                  "gradient); going on with the others")
             if within == c.steps_per_frame - 1:
                 rows.append(self._frame_row(loaded, record, sequence, k, frame_time, elapsed, detection is not None,
-                                            reinitialized or any(s.get("reinitialized") for s in steps
-                                                                 if s["index"] == k)))
+                                            any(s.get("reinitialized") for s in steps if s["index"] == k)))
                 frame_time = 0.0
-            steps[-1]["reinitialized"] = reinitialized
             self.folder.save(rows, steps, state.state_dict(), elapsed)
             self.events.step(steps[-1])
             if within == c.steps_per_frame - 1:
@@ -307,11 +305,11 @@ class Inversion:
         return self.config.start + k * self.config.stride
 
     @staticmethod
-    def _step_row(record: StepRecord, index: int, frame: int, step: int, wall: float) -> dict:
+    def _step_row(record: StepRecord, index: int, frame: int, step: int, wall: float, reinitialized: bool) -> dict:
         history = record.result.history
         row = {"index": index, "frame": frame, "step": step, "wall_time_s": wall, "candidates": record.candidates,
                "kept": record.kept, "dropped": record.result.dropped, "pruned": record.result.pruned,
-               "iterations": len(history), "loss": record.loss,
+               "iterations": len(history), "loss": record.loss, "reinitialized": reinitialized,
                "best_loss_per_iteration": [float(np.min(h["loss"])) for h in history]}
         if history and "error_deg" in history[0]:
             row["best_error_deg_per_iteration"] = [float(np.min(h["error_deg"])) for h in history]
