@@ -9,6 +9,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from nerfinv_plugin.cli import run
 from nerfinv_plugin.cli.invert import BAD_INPUT, invert
+from nerfinv_plugin.cli.synth import TRAINING_SET_RULES
 from nerfinv_plugin.demo import (
     DemoSettings,
     data_rendered,
@@ -17,7 +18,16 @@ from nerfinv_plugin.demo import (
     render_data,
     train_model,
 )
+from nerfinv_plugin.inversion.validation import INVERT_RULES, check, under, whole
 from nerfinv_plugin.report.results import CONFIG
+
+RULES = {
+    "frames": whole(1), "training-iterations": whole(1), "iterations": whole(1), "seed": whole(0),
+    **under("training-set", TRAINING_SET_RULES), "training-set.train-views": whole(1),  # the demo trains on them
+    **{name: rule for name, rule in INVERT_RULES.items() if name.startswith(("starts.", "render."))},
+}
+"""What the numeric options accept: the starts and render options as ns-invert's
+(nerfinv_plugin/inversion/validation.py)."""
 
 
 @dataclass
@@ -28,6 +38,7 @@ class Demo(DemoSettings):
     inversion continues where it stopped)."""
 
     def main(self) -> None:
+        check(self, RULES)
         console, s = Console(), self
         tic = time.perf_counter()
         spec = s.training_set

@@ -13,6 +13,7 @@ from nerfinv_plugin.cli import Interrupted, run
 from nerfinv_plugin.data.sequences import SequenceError
 from nerfinv_plugin.inversion.session import Events, Inversion, InversionError
 from nerfinv_plugin.inversion.settings import InvertConfig, SettingsError, defaults_with_preset
+from nerfinv_plugin.inversion.validation import validate
 from nerfinv_plugin.model.loaded import ModelLoadError
 from nerfinv_plugin.report.build import write_report
 
@@ -92,6 +93,7 @@ class Invert(InvertConfig):
     __doc__ = InvertConfig.__doc__
 
     def main(self) -> None:
+        validate(self)  # before anything is loaded or written
         invert(self, Console())
 
 

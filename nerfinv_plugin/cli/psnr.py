@@ -9,8 +9,12 @@ from rich.console import Console
 from rich.markup import escape
 
 from nerfinv_plugin.cli import run
+from nerfinv_plugin.inversion.validation import SettingsError, check, whole
 from nerfinv_plugin.model.evaluate import DataFormatError, FormatChoice, SplitScore, score_split
 from nerfinv_plugin.model.loading import Device, ModelLoadError, load_model
+
+RULES = {"max-views": whole(1)}
+"""What the numeric options accept (nerfinv_plugin/inversion/validation.py)."""
 
 LOW_MARGIN_DB = 1.0
 """Below this margin over an all-black image the model has most likely learned nothing of the object."""
@@ -41,6 +45,7 @@ class HeldOutPSNR:
     """Where to render: cuda when available under auto."""
 
     def main(self) -> None:
+        check(self, RULES)
         console = Console(soft_wrap=True)  # one line a view, however narrow the terminal
         loaded = load_model(self.load_config, device=self.device)
         score = score_split(loaded, self.data, self.format, self.split, self.max_views)
@@ -64,7 +69,7 @@ def print_score(console: Console, score: SplitScore, data: Path, step: int) -> N
 
 
 def entrypoint() -> None:
-    run(HeldOutPSNR, "ns-invert-psnr", ModelLoadError, FileNotFoundError, DataFormatError)
+    run(HeldOutPSNR, "ns-invert-psnr", SettingsError, ModelLoadError, FileNotFoundError, DataFormatError)
 
 
 if __name__ == "__main__":

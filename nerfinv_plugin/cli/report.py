@@ -9,8 +9,12 @@ from rich.console import Console
 from rich.markup import escape
 
 from nerfinv_plugin.cli import run
+from nerfinv_plugin.inversion.validation import SettingsError, check, several, whole
 from nerfinv_plugin.model.loading import Device
 from nerfinv_plugin.report.build import ReportError, write_report
+
+RULES = {"frames": several(whole(0), empty=True)}
+"""What the numeric options accept (nerfinv_plugin/inversion/validation.py)."""
 
 
 @dataclass
@@ -31,6 +35,7 @@ class ReportCommand:
     """Where to render the overlay images (a few full images: the CPU is enough)."""
 
     def main(self) -> None:
+        check(self, RULES)
         console = Console()
         path = write_report(self.run_dir, self.overlays, self.device, self.frames or None,
                             warn=lambda message: console.print(f"[yellow]{escape(message)}[/yellow]"))
@@ -38,7 +43,7 @@ class ReportCommand:
 
 
 def entrypoint() -> None:
-    run(ReportCommand, "ns-invert-report", ReportError)
+    run(ReportCommand, "ns-invert-report", ReportError, SettingsError)
 
 
 if __name__ == "__main__":

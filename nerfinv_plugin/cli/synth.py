@@ -9,6 +9,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from nerfinv_plugin.cli import run
+from nerfinv_plugin.inversion.validation import SettingsError, check, number, under, whole
 from nerfinv_plugin.synth.camera_images import write_camera_images
 from nerfinv_plugin.synth.datasets import (
     TrainingSetSpec,
@@ -20,6 +21,12 @@ from nerfinv_plugin.synth.datasets import (
 from nerfinv_plugin.synth.scenes import SceneName
 from nerfinv_plugin.synth.speedplus import write_speedplus
 from nerfinv_plugin.synth.trajectories import TrajectoryKind, TrajectoryMotion, TrajectorySpec
+
+TRAINING_SET_RULES = {
+    "train-views": whole(0), "val-views": whole(0), "test-views": whole(0), "width": whole(1), "height": whole(1),
+    "range-m": number(above=0), "range-jitter": number(at_least=0, below=1),  # ranges stay above 0
+}
+"""What the options of a :class:`TrainingSetSpec` accept (ns-invert-demo nests one too)."""
 
 
 @dataclass
@@ -85,6 +92,7 @@ class Synth:
     speedplus: SpeedPlusOptions = field(default_factory=SpeedPlusOptions)
 
     def main(self) -> None:
+        check(self, RULES)
         console = Console()
         t = self.trajectory
         specs = [TrajectorySpec.of(kind, t) for kind in t.kinds]
@@ -117,8 +125,22 @@ class Synth:
                           f"{self.out / 'speedplus'}")
 
 
+RULES = {
+    "seed": whole(0), "spp": whole(1), **under("training", TRAINING_SET_RULES),
+    "trajectory.num-frames": whole(1), "trajectory.frame-spacing-s": number(above=0),
+    "trajectory.range-m": number(above=0), "trajectory.end-range-m": number(above=0),
+    "trajectory.spin-rate-deg-s": number(), "trajectory.second-rate-deg-s": number(),  # either sense of turn
+    "trajectory.width": whole(1), "trajectory.height": whole(1),
+    "speedplus.train": whole(0),  # 0: no SPEED+ tree
+    "speedplus.validation": whole(1),  # a tree needs validation views: nerfstudio evaluates on them
+    "speedplus.width": whole(1), "speedplus.height": whole(1), "speedplus.range-m": number(above=0),
+    "speedplus.range-jitter": number(at_least=0, below=1),
+}
+"""What the numeric options accept (nerfinv_plugin/inversion/validation.py)."""
+
+
 def entrypoint() -> None:
-    run(Synth, "ns-invert-synth", OSError, ValueError)
+    run(Synth, "ns-invert-synth", SettingsError, OSError, ValueError)
 
 
 if __name__ == "__main__":

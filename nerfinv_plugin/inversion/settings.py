@@ -15,11 +15,8 @@ from nerfinv_plugin.initialization.bank import BankConfig
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.sampling import Strategy
 from nerfinv_plugin.inversion.tracker import MonteCarloConfig
+from nerfinv_plugin.inversion.validation import SettingsError, validate
 from nerfinv_plugin.model.loading import Device
-
-
-class SettingsError(Exception):
-    """A preset or saved config that cannot be used; the message says which key and why."""
 
 
 @dataclass
@@ -240,13 +237,15 @@ def preset_from_argv(argv: list[str]) -> str | None:
 
 
 def defaults_with_preset(argv: list[str] | None = None) -> InvertConfig:
-    """Default settings, with the preset named on the command line applied."""
+    """Default settings, with the preset named on the command line applied and its values checked."""
     name = preset_from_argv(sys.argv[1:] if argv is None else argv)
     config = InvertConfig()
     if name is None:
         return config
     path = preset_path(name)
-    return dataclasses.replace(updated(config, read_yaml(path), str(path)), preset=name)
+    config = dataclasses.replace(updated(config, read_yaml(path), str(path)), preset=name)
+    validate(config, str(path))
+    return config
 
 
 def write_config(path: Path, config: InvertConfig) -> None:
@@ -254,4 +253,7 @@ def write_config(path: Path, config: InvertConfig) -> None:
 
 
 def read_config(path: Path) -> InvertConfig:
-    return updated(InvertConfig(), read_yaml(path), str(path))
+    """A run's saved settings (or any settings file), with its values checked."""
+    config = updated(InvertConfig(), read_yaml(path), str(path))
+    validate(config, str(path))
+    return config
