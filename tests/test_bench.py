@@ -1,4 +1,4 @@
-"""``ns-invert-bench``: success counting and aggregation against hand-computed numbers, grid files, and
+"""``ns-invert-bench grid``: success counting and aggregation against hand-computed numbers, grid files, and
 grids of tiny inversions that are interrupted, resumed, and carry on past a failing cell."""
 
 import csv
@@ -7,17 +7,14 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
-import torch
 import yaml
 
 from nerfinv_plugin.bench.grid import Bench, GridError, GridEvents, expand, grid_from_dict, parse_overrides, read_grid
 from nerfinv_plugin.bench.plots import FINAL_ERROR_PNG, PIXELS_PNG, SUCCESS_PNG, write_plots
 from nerfinv_plugin.bench.scoring import ScoringError, aggregate, cell_metrics
 from nerfinv_plugin.bench.tables import GRID_CSV, GRID_JSON, TABLE_MD, table_markdown, write_tables
-from nerfinv_plugin.cli.bench import BenchCommand, entrypoint
+from nerfinv_plugin.cli.bench import GridBench, entrypoint
 from nerfinv_plugin.inversion.session import Events
 from nerfinv_plugin.inversion.settings import SettingsError, presets_dir, to_dict
 
@@ -211,7 +208,7 @@ def test_a_failing_cell_is_recorded_and_tried_again_while_the_others_complete(to
                                    "gone": {"load_config": str(config), "sequence": str(tmp_path / "nope")}}),
             "seeds": [0], "variants": {"region": {}}}
     (tmp_path / "grid.yml").write_text(yaml.safe_dump(grid, sort_keys=False))
-    monkeypatch.setattr(sys, "argv", ["ns-invert-bench", "--grid", str(tmp_path / "grid.yml"),
+    monkeypatch.setattr(sys, "argv", ["ns-invert-bench", "grid", str(tmp_path / "grid.yml"),
                                       "--out", str(tmp_path / "out")])
     entrypoint()
     out = capsys.readouterr().out
@@ -232,7 +229,7 @@ def test_command_line_replacements_bad_input_and_ctrl_c(tmp_path, monkeypatch, c
                                             "overrides": {"target": [0.0, 0.0, 0.2]}}},
             "overrides": {"stop": 9, "starts": {"count": 4}}}
     (tmp_path / "grid.yml").write_text(yaml.safe_dump(data))
-    command = BenchCommand(grid=tmp_path / "grid.yml", case=(("c", "other/config.yml", "t"), ("d", "x.yml", "u")),
+    command = GridBench(grid=tmp_path / "grid.yml", case=(("c", "other/config.yml", "t"), ("d", "x.yml", "u")),
                            seeds=(3, 4), override=("device=cuda", "starts.source=volume"))
     grid = command.load()
     assert [(c.label, str(c.load_config), c.sequence, c.overrides) for c in grid.cases] == [
@@ -241,7 +238,7 @@ def test_command_line_replacements_bad_input_and_ctrl_c(tmp_path, monkeypatch, c
     assert grid.overrides == {"stop": 9, "starts": {"count": 4, "source": "volume"}, "device": "cuda"}
 
     def run_cli(*argv: str) -> tuple[int, str]:
-        monkeypatch.setattr(sys, "argv", ["ns-invert-bench", "--grid", str(tmp_path / "grid.yml"), *argv])
+        monkeypatch.setattr(sys, "argv", ["ns-invert-bench", "grid", str(tmp_path / "grid.yml"), *argv])
         with pytest.raises(SystemExit) as exit_info:
             entrypoint()
         return exit_info.value.code, capsys.readouterr().err
@@ -255,28 +252,3 @@ def test_command_line_replacements_bad_input_and_ctrl_c(tmp_path, monkeypatch, c
     code, err = run_cli("--out", str(tmp_path))
     assert code == 130 and "Run the same command again" in err
 
-
-def test_perf_loops_time_the_same_work_both_ways(toy_run):
-    """The throughput benchmark's two loops run the iterations they claim on the same rays, and the
-    thesis' loop leaves the model as it found it (frozen, no gradients)."""
-    from nerfinv_plugin.bench.perf import our_loop, thesis_loop
-    from nerfinv_plugin.inversion.optimizer import OptimizerConfig
-    from nerfinv_plugin.model.loading import load_model
-    from nerfinv_plugin.model.render import Intrinsics
-
-    config_path, data = toy_run
-    loaded = load_model(config_path, device="cpu")
-    meta = json.loads((data / "transforms_test.json").read_text())
-    image = cv2.cvtColor(cv2.imread(str(data / "test" / "r_000.png")), cv2.COLOR_BGR2RGB)
-    height, width = image.shape[:2]
-    focal = 0.5 * width / np.tan(0.5 * meta["camera_angle_x"])
-    intrinsics = Intrinsics(focal, focal, width / 2, height / 2, width, height)
-    start = torch.as_tensor(loaded.dataset_to_model(np.array([f["transform_matrix"] for f in meta["frames"][:2]])),
-                            dtype=torch.float32)
-    thesis = thesis_loop(loaded, start, image, intrinsics, 32, 2)
-    ours = our_loop(loaded, start, image, intrinsics, 32, torch.zeros(3), OptimizerConfig(iterations=3))
-    assert (thesis.iterations, ours.iterations) == (2, 3)
-    assert thesis.rays_per_iteration == ours.rays_per_iteration == 64
-    assert thesis.seconds > 0 and ours.seconds > 0 and thesis.peak_memory_bytes >= 0
-    assert not any(p.requires_grad for p in loaded.model.parameters())
-    assert all(p.grad is None for p in loaded.model.parameters())

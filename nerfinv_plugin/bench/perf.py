@@ -4,12 +4,13 @@ The thesis' loop (its section 4.3): every iteration detects keypoints in the obs
 pixels, renders each candidate through the patched ``get_outputs_for_camera_ray_bundle`` with the
 model's weights trainable, stacks the losses, back-propagates once and steps Adam on screw parameters
 about the world origin. Ours is :func:`optimize_candidates` with the settings ``ns-invert`` runs with.
-Both see the same model, frame, starting poses and number of pixels.
+Both see the same model, frame, starting poses and pixels (the same random generator draws them, so
+the first iteration renders the same rays both ways), and the model comes back from either as it went in.
 """
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -18,13 +19,18 @@ import psutil
 import torch
 from torch import Tensor
 
+from nerfinv_plugin.bench.model_settings import Sampling, model_settings, sampled
+from nerfinv_plugin.bench.observed import ObservedFrame
 from nerfinv_plugin.geometry.se3 import exp_se3
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.model.fused_hash import stock_hash_encoding
 from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loaded import LoadedModel
-from nerfinv_plugin.model.render import Intrinsics, pinhole_cameras
+from nerfinv_plugin.model.render import Intrinsics, memory_budget_bytes, pinhole_cameras
+
+START_MIN_DEG, START_MAX_DEG, START_SHIFT_M = 15.0, 20.0, 0.05
+"""Where the throughput benchmarks start: iNeRF's protocol, 15-20 degrees and 5 cm off the truth."""
 
 
 @dataclass(frozen=True)
@@ -34,6 +40,9 @@ class Timing:
     rays_per_iteration: int
     peak_memory_bytes: int
     """Largest growth of the process' resident memory (CPU) or of allocated CUDA memory during the run."""
+    first_losses: np.ndarray
+    """[N] the candidates' losses at the first iteration (the starts, before any update): on the same rays
+    and with the same render settings, both loops must agree on them."""
 
     @property
     def per_iteration(self) -> float:
@@ -72,7 +81,8 @@ def peak_memory(device: torch.device):
         thread.join()
 
 
-def _timed(device: torch.device, rays: int, iterations: int, work: Callable[[], None]) -> Timing:
+def _timed(device: torch.device, work: Callable[[], None]) -> tuple[float, int]:
+    """``(seconds, peak memory growth in bytes)`` of ``work()``."""
     with peak_memory(device) as peak:
         if device.type == "cuda":
             torch.cuda.synchronize(device)
@@ -81,7 +91,7 @@ def _timed(device: torch.device, rays: int, iterations: int, work: Callable[[], 
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         seconds = time.perf_counter() - tic
-    return Timing(seconds, iterations, rays, int(peak()))
+    return seconds, int(peak())
 
 
 def thesis_step(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor, target: Tensor) -> Tensor:
@@ -111,6 +121,7 @@ def thesis_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsic
     optimizer = torch.optim.Adam([theta], lr=lr)
     rng = np.random.default_rng(seed)
     start = start.to(device, torch.float32)
+    losses: list[Tensor] = []
 
     def work() -> None:
         loaded.model.requires_grad_(True)
@@ -120,27 +131,123 @@ def thesis_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsic
                                          device=device)
                 optimizer.zero_grad(set_to_none=True)
                 c2w = (exp_se3(theta) @ start)[:, :3]
-                thesis_step(loaded, c2w, intrinsics, chosen, observed[chosen[:, 0], chosen[:, 1]])
+                target = observed[chosen[:, 0], chosen[:, 1]]
+                rgb = thesis_step(loaded, c2w, intrinsics, chosen, target)
+                losses.append(((rgb.detach() - target) ** 2).mean((1, 2)))
                 optimizer.step()
         finally:
             loaded.model.requires_grad_(False)
             loaded.model.zero_grad(set_to_none=True)
 
-    return _timed(device, start.shape[0] * pixels, iterations, work)
+    seconds, peak = _timed(device, work)
+    return Timing(seconds, iterations, start.shape[0] * pixels, peak, losses[0].cpu().numpy())
 
 
 def our_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsics: Intrinsics, pixels: int,
              centre: Tensor, config: OptimizerConfig, seed: int = 0) -> Timing:
-    """One Monte Carlo step of our engine: keypoints once, all candidates batched, frozen weights."""
+    """One Monte Carlo step of our engine: keypoints once, all candidates batched, frozen weights. The
+    iterations' pixels come from a generator seeded as :func:`thesis_loop`'s (the ranking pixels from
+    another), so both loops draw the same pixels."""
     observed = torch.as_tensor(image, dtype=torch.float32, device=loaded.device) / 255.0
-    rng = np.random.default_rng(seed)
     sampler = PixelSampler("interest_region", pixels).prepare(image)
-    eval_pixels = torch.as_tensor(PixelSampler("random", 1024).prepare(image).sample(rng))
-    history: list = []
+    eval_pixels = torch.as_tensor(PixelSampler("random", 1024).prepare(image).sample(np.random.default_rng(seed + 1)))
+    history: list[dict] = []
 
     def work() -> None:
         history.extend(optimize_candidates(loaded, start, observed, intrinsics, sampler, eval_pixels, centre, config,
-                                           rng).history)
+                                           np.random.default_rng(seed)).history)
 
-    timing = _timed(loaded.device, start.shape[0] * pixels, config.iterations, work)
-    return Timing(timing.seconds, len(history), timing.rays_per_iteration, timing.peak_memory_bytes)
+    seconds, peak = _timed(loaded.device, work)
+    return Timing(seconds, len(history), start.shape[0] * pixels, peak, history[0]["loss"])
+
+
+@dataclass(frozen=True)
+class PerfComparison:
+    """One Monte Carlo step timed the thesis' way and ours, from the same starts on the same frame."""
+
+    thesis: Timing
+    ours: Timing
+
+    @property
+    def ratio(self) -> float:
+        """Thesis time per iteration over ours: how many times faster ours is."""
+        return self.thesis.per_iteration / self.ours.per_iteration
+
+
+def _starts(loaded: LoadedModel, observed: ObservedFrame, count: int, seed: int) -> Tensor:
+    return observed.starts(count, START_MIN_DEG, START_MAX_DEG, START_SHIFT_M * loaded.dataparser_scale, seed)
+
+
+def compare_loops(loaded: LoadedModel, observed: ObservedFrame, candidates: int, pixels: int, iterations: int,
+                  sampling: Sampling, seed: int = 0) -> PerfComparison:
+    """Time ``iterations`` iterations of ``candidates`` x ``pixels`` rays the thesis' way (rays not bounded,
+    the model's own sample counts) and then ours (rendering with ``sampling``), one after the other."""
+    start = _starts(loaded, observed, candidates, seed)
+    with model_settings(loaded):
+        thesis = thesis_loop(loaded, start, observed.image, observed.intrinsics, pixels, iterations, seed=seed)
+    with sampled(loaded, sampling, observed.centre):
+        ours = our_loop(loaded, start, observed.image, observed.intrinsics, pixels, observed.centre,
+                        OptimizerConfig(iterations=iterations), seed)
+    return PerfComparison(thesis, ours)
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    candidates: int
+    pixels: int
+    timing: Timing
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """How our step scales with the number of rays."""
+
+    chunk_rays: int
+    """Rays per chunk with ``sampling``'s sample counts."""
+    memory_budget_bytes: int
+    points: list[SweepPoint]
+
+
+def sweep(loaded: LoadedModel, observed: ObservedFrame, points: Sequence[tuple[int, int]], iterations: int,
+          sampling: Sampling, seed: int = 0) -> Sweep:
+    """Time ours for each ``(candidates, pixels)`` of ``points``, ``iterations`` iterations each."""
+    config = OptimizerConfig(iterations=iterations)
+    with sampled(loaded, sampling, observed.centre):
+        timed = [SweepPoint(n, p, our_loop(loaded, _starts(loaded, observed, n, seed), observed.image,
+                                           observed.intrinsics, p, observed.centre, config, seed))
+                 for n, p in points]
+        return Sweep(loaded.chunk_rays, memory_budget_bytes(loaded.device), timed)
+
+
+@dataclass(frozen=True)
+class OperatorTime:
+    name: str
+    self_cpu_s: float
+    calls: int
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Where our step's time goes: the operators by the CPU time spent in themselves."""
+
+    iterations: int
+    cpu_s: float
+    """CPU time in all operators."""
+    operators: list[OperatorTime]
+    """The ``top`` operators, most time first."""
+
+
+def profile_ours(loaded: LoadedModel, observed: ObservedFrame, candidates: int, pixels: int, sampling: Sampling,
+                 iterations: int = 5, top: int = 15, seed: int = 0) -> Profile:
+    """Profile ``iterations`` of our iterations with ``torch.profiler``, after as many unprofiled ones to
+    warm up (first-call costs are not where a long run spends its time)."""
+    config = OptimizerConfig(iterations=iterations)
+    start = _starts(loaded, observed, candidates, seed)
+    with sampled(loaded, sampling, observed.centre):
+        our_loop(loaded, start, observed.image, observed.intrinsics, pixels, observed.centre, config, seed)
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
+            our_loop(loaded, start, observed.image, observed.intrinsics, pixels, observed.centre, config, seed)
+    events = profile.key_averages()
+    ranked = sorted(events, key=lambda e: e.self_cpu_time_total, reverse=True)[:top]
+    return Profile(iterations, sum(e.self_cpu_time_total for e in events) / 1e6,
+                   [OperatorTime(e.key, e.self_cpu_time_total / 1e6, e.count) for e in ranked])

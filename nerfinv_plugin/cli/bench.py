@@ -1,15 +1,23 @@
-"""``ns-invert-bench``: run an experiment grid (cases x variants x seeds) of ``ns-invert`` runs and tabulate
-how often each variant ends on the target, as the thesis' chapter 5 counts it."""
+"""``ns-invert-bench``: nerfinv's benchmarks, one subcommand each, as ``ns-render`` does it.
+
+``grid`` runs experiment grids of ``ns-invert`` runs; ``perf``, ``render``, ``screw`` and ``bank`` measure one
+trained model and share its options (:class:`ModelBench`). The measuring lives in ``nerfinv_plugin.bench``;
+this module parses, calls and prints the tables (markdown, to paste into docs/benchmarks.md).
+"""
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
+import torch
+import tyro
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-from tyro.conf import UseAppendAction, arg
+from tyro.conf import Positional, UseAppendAction, arg
 
 from nerfinv_plugin.bench.grid import (
     Bench,
@@ -22,21 +30,35 @@ from nerfinv_plugin.bench.grid import (
     read_grid,
     with_cases,
 )
+from nerfinv_plugin.bench.model_settings import Sampling
+from nerfinv_plugin.bench.observed import read_observed
+from nerfinv_plugin.bench.perf import compare_loops, profile_ours, sweep
+from nerfinv_plugin.bench.recall import bank_benchmark
+from nerfinv_plugin.bench.render_speed import render_problem, render_speed
 from nerfinv_plugin.bench.scoring import SUCCESS_DEG, aggregate, under_key
+from nerfinv_plugin.bench.screw import screw_runs, summarize
 from nerfinv_plugin.bench.tables import TABLE_MD
 from nerfinv_plugin.cli import Interrupted, run
+from nerfinv_plugin.data.sequences import SequenceError
+from nerfinv_plugin.initialization.bank import BankConfig
 from nerfinv_plugin.inversion.session import Events
-from nerfinv_plugin.inversion.settings import SettingsError
+from nerfinv_plugin.inversion.settings import RenderConfig, SettingsError
+from nerfinv_plugin.model.loaded import LoadedModel
+from nerfinv_plugin.model.loading import Device, ModelLoadError, load_model
+
+MB = 1 << 20
 
 
 @dataclass
-class BenchCommand:
-    """Run every case of a grid file under every variant and seed (one ns-invert run each), skipping the
-    runs already finished and continuing interrupted ones, and write grid.csv, table.md, grid.json and
-    figures into <out>/<grid name>/. Run the same command again to continue a stopped grid. See
-    docs/bench.md and the grids in configs/bench/."""
+class GridBench:
+    """Run an experiment grid (cases x variants x seeds) of ns-invert runs and tabulate its successes.
 
-    grid: Path
+    Every case of the grid file runs under every variant and seed (one ns-invert run each), skipping the
+    runs already finished and continuing interrupted ones; grid.csv, table.md, grid.json and figures go
+    into <out>/<grid name>/. Run the same command again to continue a stopped grid. See docs/bench.md and
+    the grids in configs/bench/."""
+
+    grid: Annotated[Path, Positional, arg(metavar="GRID_YML")]
     """Grid file (YAML): base preset and overrides, cases (model config.yml and sequence), variants and
     seeds. Paths in it are relative to the current directory."""
     out: Path = Path("outputs")
@@ -119,8 +141,260 @@ def bench_grid(grid: Grid, out: Path, console: Console) -> list[dict]:
     return records
 
 
+@dataclass(kw_only=True)
+class ModelBench:
+    """Options of every benchmark that measures one trained model."""
+
+    load_config: Path
+    """config.yml of a trained run."""
+    device: Device = "auto"
+    """Where to render."""
+    threads: int | None = None
+    """CPU threads torch may use (timings depend on it). Unset: torch's own choice."""
+
+    def load(self) -> LoadedModel:
+        if self.threads is not None:
+            torch.set_num_threads(self.threads)
+        return load_model(self.load_config, device=self.device)
+
+    def header(self, loaded: LoadedModel) -> str:
+        """What a measured table needs next to it: the model, the machine's settings and the date."""
+        return (f"model {loaded.config.method_name} step {loaded.step} ({self.load_config}) on {loaded.device}, "
+                f"{torch.get_num_threads()} torch threads, {datetime.now():%Y-%m-%d %H:%M}")
+
+
+@dataclass(kw_only=True)
+class SpeedBench(ModelBench):
+    """Options of the two throughput benchmarks, the thesis' way against ours."""
+
+    candidates: int = 15
+    """Candidates per iteration (the thesis: 15)."""
+    pixels: int = 256
+    """Pixels per candidate and iteration."""
+    seed: int = 0
+    """Seeds the candidate poses and the pixels."""
+    render: Sampling = field(default_factory=Sampling)
+    """How our side samples rays (as ns-invert's --render options); the thesis' side renders as trained."""
+
+
+@dataclass(kw_only=True)
+class PerfBench(SpeedBench):
+    """Time one Monte Carlo step on one frame the thesis' way and ours (or how ours scales, or profile it).
+
+    N candidates x P pixels x iterations, one way after the other in this process: time per iteration,
+    rays per second, peak memory and the ratio. With --sweep, time ours over candidate and pixel counts;
+    with --profile, where our time goes."""
+
+    sequence: str
+    """A sequence with ground truth (ns-invert's --sequence); the starts are placed around its frame."""
+    frame: int = 0
+    """Which frame of the sequence to invert."""
+    resolution: tuple[int, int] | None = None
+    """Working resolution WIDTH HEIGHT (default: the images' own)."""
+    iterations: int = 60
+    """Iterations per step (the thesis: 60)."""
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Target centre in the dataset frame."""
+    sweep: bool = False
+    """Time ours for 1 to 80 candidates and 64 to 4096 pixels (sweep-iterations each) instead."""
+    sweep_iterations: int = 5
+    """Iterations per point of the sweep."""
+    profile: bool = False
+    """Profile 5 of our iterations with torch.profiler instead and print the operators that take the most
+    CPU time."""
+
+    def main(self) -> None:
+        console = Console(soft_wrap=True)  # table rows on one line, to paste
+        loaded = self.load()
+        observed = read_observed(loaded, self.sequence, self.frame, self.target, self.resolution)
+        width, height = observed.intrinsics.width, observed.intrinsics.height
+        console.print(f"{self.header(loaded)}; frame {observed.name} at {width}x{height}")
+        if self.sweep:
+            points = [(n, self.pixels) for n in (1, 5, 15, 40, 80)] + [(self.candidates, p) for p in (64, 1024, 4096)]
+            swept = sweep(loaded, observed, points, self.sweep_iterations, self.render, self.seed)
+            console.print(f"chunk {swept.chunk_rays} rays, memory budget {swept.memory_budget_bytes / MB:,.0f} MB")
+            console.print("| candidates | pixels | rays / iteration | s / iteration | us / ray | peak memory |\n"
+                          "|---|---|---|---|---|---|")
+            for point in swept.points:
+                t, rays = point.timing, point.candidates * point.pixels
+                console.print(f"| {point.candidates} | {point.pixels} | {rays:,} | {t.per_iteration:.3f} | "
+                              f"{1e6 * t.per_iteration / rays:.1f} | {t.peak_memory_bytes / MB:,.0f} MB |")
+            return
+        if self.profile:
+            found = profile_ours(loaded, observed, self.candidates, self.pixels, self.render, seed=self.seed)
+            console.print(f"{self.candidates} candidates x {self.pixels} pixels x {found.iterations} iterations: "
+                          f"{found.cpu_s:.2f} s of CPU time in operators")
+            console.print("| operator | self CPU time | share | calls |\n|---|---|---|---|")
+            for op in found.operators:
+                console.print(f"| {op.name} | {op.self_cpu_s:.3f} s | {100 * op.self_cpu_s / found.cpu_s:.1f}% | "
+                              f"{op.calls} |")
+            return
+        compared = compare_loops(loaded, observed, self.candidates, self.pixels, self.iterations, self.render,
+                                 self.seed)
+        console.print(f"{self.candidates} candidates x {self.pixels} pixels x {self.iterations} iterations")
+        console.print("| way | s / iteration | rays / s (fwd+bwd) | peak memory | first loss (mean) |\n"
+                      "|---|---|---|---|---|")
+        for name, t in (("thesis (per-candidate patched get_outputs_for_camera_ray_bundle, trainable weights, "
+                         "keypoints every iteration)", compared.thesis), ("nerfinv (ns-invert's step)", compared.ours)):
+            console.print(f"| {name} | {t.per_iteration:.3f} | {t.rays_per_second:,.0f} | "
+                          f"{t.peak_memory_bytes / MB:,.0f} MB | {float(np.mean(t.first_losses)):.4f} |")
+        console.print(f"ratio (thesis time per iteration / ours): [bold]{compared.ratio:.2f}x[/bold]")
+
+
+@dataclass(kw_only=True)
+class RenderBench(SpeedBench):
+    """Time one inversion iteration (render, loss, backward) the thesis' way and ours, on the same rays.
+
+    N candidates at P pixels, alternately in one process: rays per second of each way and the ratio, and
+    how far apart the two ways' colours are."""
+
+    repeats: int = 5
+    """Timed iterations of each way (after one warm-up each); the median is reported."""
+    range_m: float = 5.0
+    """Distance of the candidate cameras (random, looking at the dataset origin) in dataset units."""
+    width: int = 240
+    """Image width in pixels; the field of view is SPEED+'s."""
+    height: int = 150
+    """Image height in pixels."""
+    on_target: bool = False
+    """Draw the pixels only where the first candidate's rays cross the target sphere (as interest-region
+    pixels on the object are), instead of anywhere in the image, where many rays miss it and cost ours
+    nothing."""
+
+    def main(self) -> None:
+        console = Console(soft_wrap=True)  # table rows on one line, to paste
+        loaded = self.load()
+        problem = render_problem(loaded, self.candidates, self.pixels, self.range_m, self.width, self.height,
+                                 self.render, self.on_target, self.seed)
+        speed = render_speed(loaded, problem, self.render, self.repeats)
+        r = self.render
+        console.print(f"{self.header(loaded)}; {self.candidates} candidates x {self.pixels} pixels = {speed.rays} "
+                      f"rays, chunk {speed.chunk_rays} rays; ours: target radius {r.target_radius_m}, samples "
+                      f"{r.proposal_samples} / {r.nerf_samples}; colour difference between the ways: mean "
+                      f"{speed.colour_diff_mean:.2e}, max {speed.colour_diff_max:.2e}")
+        console.print("| way | s / iteration (median) | rays / s (fwd+bwd) |\n|---|---|---|")
+        console.print("| thesis: per-candidate get_outputs_for_camera_ray_bundle, stock hash forward, weights "
+                      f"trainable | {speed.thesis_median_s:.3f} | {speed.rays / speed.thesis_median_s:,.0f} |")
+        console.print("| nerfinv: one batched bundle, chunked, fused hash forward, frozen weights, bounded rays | "
+                      f"{speed.ours_median_s:.3f} | {speed.rays / speed.ours_median_s:,.0f} |")
+        console.print(f"ratio (thesis time / ours): [bold]{speed.ratio:.2f}x[/bold]")
+
+
+@dataclass(kw_only=True)
+class ScrewBench(ModelBench):
+    """Optimize the same starts on one frame with screws about the target and about the world origin.
+
+    Prints each parameterisation's final errors (median over the seeds) and time per step."""
+
+    sequence: str
+    """A sequence of the same object with ground truth: a SHIRT trajectory (<root>/roeN[/domain]), a Blender
+    split (<scene>:<split>) or an image folder with camera.json and poses.json."""
+    frame: int = 0
+    """Which frame to invert."""
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Target centre in the dataset frame: what the screws turn about, and the starts."""
+    candidates: int = 8
+    """Candidates optimized together."""
+    iterations: int = 60
+    """Iterations of the one Monte Carlo step."""
+    min_deg: float = 15.0
+    """Starts are turned by at least this angle about the target..."""
+    max_deg: float = 20.0
+    """...and at most this one."""
+    shift_fraction: float = 0.05
+    """...and moved by this fraction of the true range."""
+    seeds: int = 3
+    """Repetitions with different starts and pixels: seeds seed, seed + 1, ..."""
+    seed: int = 0
+    """The first seed."""
+
+    def main(self) -> None:
+        console = Console(soft_wrap=True)  # table rows on one line, to paste
+        loaded = self.load()
+        observed = read_observed(loaded, self.sequence, self.frame, self.target)
+        runs = screw_runs(loaded, observed, self.candidates, self.iterations, self.min_deg, self.max_deg,
+                          self.shift_fraction, range(self.seed, self.seed + self.seeds))
+        console.print(f"{self.header(loaded)}; {self.sequence} frame {self.frame}, {self.candidates} candidates, "
+                      f"{self.iterations} iterations, starts {self.min_deg:g}-{self.max_deg:g} deg and "
+                      f"{self.shift_fraction:.0%} of the range off, {self.seeds} seeds")
+        console.print("| screw about | best error, deg (median over seeds) | all candidates' median error, deg "
+                      "| s per step |\n|---|---|---|---|")
+        for row in summarize(runs):
+            console.print(f"| {row.origin} | {row.best_deg:.2f} | {row.median_deg:.2f} | {row.seconds:.1f} |")
+
+
+@dataclass(kw_only=True)
+class BankBench(ModelBench):
+    """Build (or read) the view bank as ns-invert does, then score its recall on sequences with truth.
+
+    Every frame with ground truth and the object wholly in view is matched; prints the share whose first
+    hypothesis, and whose first --hypotheses, include one within --threshold-deg of the true attitude,
+    and the build and match times."""
+
+    sequences: tuple[str, ...]
+    """Sequences with ground truth (ns-invert's --sequence forms: SHIRT root/roeN, scene:split, folders)."""
+    resolution: tuple[int, int] | None = None
+    """Working resolution WIDTH HEIGHT (default: the images' own)."""
+    hypotheses: int = 20
+    """Hypotheses per frame that count for recall."""
+    threshold_deg: float = 15.0
+    """A hypothesis this close to the true attitude is a hit."""
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Target centre in the dataset frame (metres)."""
+    rebuild: bool = False
+    """Render the bank even when a cached one exists (to time the build; rays must be bounded)."""
+    bank: BankConfig = field(default_factory=BankConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+
+    def main(self) -> None:
+        console = Console(soft_wrap=True)  # table rows on one line, to paste
+        loaded = self.load()
+        with Progress(console=console) as progress:
+            def on_build(views: int):
+                task = progress.add_task("view bank", total=views)
+                return lambda done: progress.update(task, advance=done)
+
+            result = bank_benchmark(loaded, self.sequences, self.target, self.bank, self.render, self.hypotheses,
+                                    self.threshold_deg, self.resolution, self.rebuild, on_build)
+        radius = "not bounded" if result.radius_m is None else \
+            f"{result.radius_m:.3f} m ({'given' if result.radius_given else 'measured'}, {result.bound_s:.1f} s)"
+        source = f"rendered in {result.build_s:.1f} s" if result.built else \
+            f"read from the cache (rendered in {result.build_s:.1f} s when built)"
+        console.print(f"{self.header(loaded)}; object radius {radius}; bank {self.bank.views} views x "
+                      f"{self.bank.in_plane} angles at {self.bank.render_px} px: {source}, ready in "
+                      f"{result.ready_s:.1f} s ({result.entries} entries)")
+        console.print(f"| sequence | frames | left out | top-1 within {self.threshold_deg:g} deg | "
+                      f"top-{self.hypotheses} | median best error (deg) | median range error (top-1) | "
+                      "match s (median, max) |\n|---|---|---|---|---|---|---|---|")
+        for recall in result.recalls:
+            times = recall.match_s or [float("nan")]
+            console.print(f"| {recall.name} | {recall.frames} | {recall.skipped} | {100 * recall.top1:.0f}% | "
+                          f"{100 * recall.topk:.0f}% | {recall.median_best_deg:.1f} | "
+                          f"{100 * recall.median_range_error:.1f}% | {np.median(times):.3f}, {max(times):.3f} |")
+        if result.frames:
+            top1, topk = result.overall()
+            console.print(f"[bold]all {result.frames} frames: top-1 {100 * top1:.1f}%, "
+                          f"top-{self.hypotheses} {100 * topk:.1f}%[/bold]")
+
+
+Commands = (
+    Annotated[GridBench, tyro.conf.subcommand(name="grid", description="experiment grids of ns-invert runs: "
+                                              "success counts, tables, plots")]
+    | Annotated[PerfBench, tyro.conf.subcommand(name="perf", description="one Monte Carlo step, the thesis' "
+                                                "way and ours: time, rays/s, memory; --sweep, --profile")]
+    | Annotated[RenderBench, tyro.conf.subcommand(name="render", description="one iteration's render + "
+                                                  "backward, the thesis' way and ours, on the same rays")]
+    | Annotated[ScrewBench, tyro.conf.subcommand(name="screw", description="screws about the target against "
+                                                 "the thesis' world origin, from the same starts")]
+    | Annotated[BankBench, tyro.conf.subcommand(name="bank", description="the view bank: build and match time, "
+                                                "recall of its hypotheses")]
+)
+"""``ns-invert-bench SUBCOMMAND [OPTIONS]``: a subcommand is required (``--help`` lists them)."""
+
+
 def entrypoint() -> None:
-    run(BenchCommand, "ns-invert-bench", GridError, SettingsError)
+    run(Commands, "ns-invert-bench", GridError, SettingsError, ModelLoadError, SequenceError,
+        default=tyro.MISSING_NONPROP)  # no default: a subcommand is required
 
 
 if __name__ == "__main__":
