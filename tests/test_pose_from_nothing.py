@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from nerfinv_plugin.cli.invert import entrypoint
 from nerfinv_plugin.initialization.bank import BankConfig
@@ -71,7 +72,7 @@ def test_the_bare_command_tracks_the_fixture_from_nothing(toy_run, shirt, tmp_pa
 def _quick(toy_run, sequence: Path, out: Path, **changes) -> InvertConfig:
     return InvertConfig(load_config=toy_run[0], sequence=str(sequence), output_dir=out, name="e", timestamp="t",
                         device="cpu", pixels=128, eval_pixels=512, bank=BankConfig(subdivisions=2),
-                        optimizer=OptimizerConfig(iterations=15), **changes)
+                        **({"optimizer": OptimizerConfig(iterations=15)} | changes))
 
 
 def test_the_default_path_never_reads_the_truth(toy_run, shirt, tmp_path):
@@ -110,3 +111,33 @@ def test_a_mask_folder_that_does_not_match_the_frames_is_one_line_and_exit_code_
     err = capsys.readouterr().err.strip()
     assert exit_info.value.code == 2 and len(err.splitlines()) == 1 and "--masks" in err, err
     assert not (tmp_path / "out").exists()
+
+
+def _flipped_start(truth_model: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The first frame's true pose turned half a turn about the model's z axis through the object centre."""
+    turn = np.diag([-1.0, -1.0, 1.0, 1.0])
+    to_centre, from_centre = np.eye(4), np.eye(4)
+    to_centre[:3, 3], from_centre[:3, 3] = centre, -centre
+    return to_centre @ turn @ from_centre @ truth_model
+
+
+@pytest.mark.parametrize("watch_count", [2, 0])
+def test_the_bank_watch_takes_a_tracker_off_a_wrong_mode(toy_run, shirt, tmp_path, monkeypatch, watch_count):
+    """Started half a turn from the truth, with the lost-object check off: the bank's watch brings the tracker
+    to the truth within the six frames; without it the tracker stays far off."""
+    def wrong_start(self, loaded, sequence, centre, detections, initializer):
+        truth = loaded.dataset_to_model(sequence.frames[0].c2w_true)
+        return torch.as_tensor(_flipped_start(truth, centre.numpy())[None], dtype=torch.float32)
+
+    monkeypatch.setattr(Inversion, "_starts", wrong_start)
+    config = _quick(toy_run, shirt / "roe1", tmp_path, lost_iou=0.0, watch_count=watch_count,
+                    optimizer=OptimizerConfig(iterations=30))
+    summary = Inversion.create(config).run()
+    rows = RunFolder(Path(summary["run"])).rows()
+    errors = np.array([r["rotation_deg"] for r in rows])
+    assert errors[0] > 90.0, errors  # the start really was the wrong mode
+    added = [r["bank_added"] for r in rows]
+    if watch_count:
+        assert errors[-2:].max() < 10.0 and sum(added) > 0, (errors, added)
+    else:
+        assert errors[-2:].min() > 30.0 and sum(added) == 0, (errors, added)

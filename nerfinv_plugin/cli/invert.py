@@ -25,7 +25,8 @@ def _frame_line(row: dict) -> str:
     error = "" if row["rotation_deg"] is None else \
         f"rotation {row['rotation_deg']:.2f} deg, translation {row['translation_m']:.3f} m, "
     flags = "" if row.get("object_found", True) else ", no object found"
-    flags += ", bank asked again" if row.get("reinitialized") else ""
+    flags += ", bank asked again" if row.get("reinitialized") else \
+        (f", {row['bank_added']} bank hypotheses joined" if row.get("bank_added") else "")
     return (f"frame {row['frame']} ({row['name']}): {error}loss {row['loss']:.5f}, {row['candidates']} candidates, "
             f"{row['wall_time_s']:.1f} s{flags}")
 

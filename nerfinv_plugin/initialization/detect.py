@@ -97,6 +97,16 @@ class Detection:
         x0, y0, x1, y1 = self.box
         return (0.5 * (x0 + x1), 0.5 * (y0 + y1))
 
+    def around(self, margin: float) -> np.ndarray:
+        """[H, W] bool: the box widened by ``margin`` times its size on every side, within the frame."""
+        x0, y0, x1, y1 = self.box
+        grow = margin * self.size
+        height, width = self.mask.shape
+        region = np.zeros((height, width), bool)
+        region[max(0, math.floor(y0 - grow)):min(height, math.ceil(y1 + grow)),
+               max(0, math.floor(x0 - grow)):min(width, math.ceil(x1 + grow))] = True
+        return region
+
 
 class MaskError(ValueError):
     """Bad user masks; the message is one line saying what is wrong and how to fix it."""

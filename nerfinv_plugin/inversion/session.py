@@ -40,6 +40,9 @@ BOUNDED_PROPOSAL_SAMPLES = (8, 4)
 """Samples per proposal level when rays are bounded to the object (docs/benchmarks.md: the same inversion
 errors as the trained (64, 32) in three seeds, at a sixth of the cost)."""
 BOUNDED_NERF_SAMPLES = 8
+RANK_MARGIN = 0.25
+"""With ``--rank-region object``, candidates are ranked on pixels of the object's box widened by this
+fraction of its size on every side: a candidate that puts the object beside it is still seen."""
 
 
 class InversionError(Exception):
@@ -100,6 +103,11 @@ def _rotation_error(poses: Tensor, truth: Tensor) -> Tensor:
     return geodesic_deg(poses[:, :3, :3], truth[None, :3, :3].expand_as(poses[:, :3, :3]).to(poses))
 
 
+def attitude_deg(a: Tensor, b: Tensor) -> Tensor:
+    """Degrees between every attitude of ``a`` [N, 4, 4] and every one of ``b`` [M, 4, 4]: [N, M]."""
+    return geodesic_deg(a[:, None, :3, :3].double(), b[None, :, :3, :3].to(a.device).double())
+
+
 def bound_rays(loaded: LoadedModel, centre: Tensor, render: RenderConfig) -> float | None:
     """Bound rays to a sphere about ``centre`` (model frame) that holds the object, measured on the model
     unless ``render`` gives its radius, and take the fewer samples that then suffice, unless ``render`` says
@@ -155,6 +163,9 @@ class Inversion:
                         torch.as_tensor(loaded.dataset_to_model(f.c2w_true), dtype=torch.float32))
                   for f in sequence.frames]
         detections = self._detections(sequence)
+        if c.rank_region == "object":
+            for frame, detection in zip(frames, detections):
+                frame.rank_region = None if detection is None else detection.around(RANK_MARGIN)
         centre = torch.as_tensor(loaded.point_to_model(np.asarray(c.target)), dtype=torch.float32)
         radius = bound_rays(loaded, centre, c.render)
         if radius is not None:
@@ -184,27 +195,29 @@ class Inversion:
             detection = detections[k]
             if within == 0 and c.monte_carlo.mode == "fixed":
                 state = tracker.begin(start, seed=c.seed + k)
-            reinitialized = False
+            reinitialized, watched = False, 0
             if detection is None:
                 self.events.warn(f"frame {k} ({frames[k].name}): no object found (nothing bright enough on the "
                                  "dark background, or too small); keeping the prediction")
                 estimate = state.last_estimate if state.last_estimate is not None else start[0]
                 record = StepRecord(k, estimate, state.last_loss, 0, StepResult(estimate[None], torch.zeros(1)))
             else:
-                if within == 0 and k > 0 and initializer is not None and c.lost_iou > 0:
-                    reinitialized = self._reinitialize(loaded, initializer, state, frames[k], detection)
+                if within == 0 and k > 0 and initializer is not None:
+                    reinitialized, watched = self._ask_bank(loaded, initializer, state, frames[k], detection)
                 record = tracker.step(state, frames[k], k, self.events.iteration)
             wall = time.perf_counter() - tic
             elapsed += wall
             frame_time += wall
-            steps.append(self._step_row(record, k, self._frame_number(k), step_index, wall, reinitialized))
+            steps.append(self._step_row(record, k, self._frame_number(k), step_index, wall, reinitialized, watched))
             if record.result.dropped:
                 self.events.warn(f"frame {k} ({frames[k].name}): dropped candidate(s) "
                                  f"{', '.join(map(str, record.result.dropped))} (non-finite pose, loss or "
                                  "gradient); going on with the others")
             if within == c.steps_per_frame - 1:
+                own = [s for s in steps if s["index"] == k]
                 rows.append(self._frame_row(loaded, record, sequence, k, frame_time, elapsed, detection is not None,
-                                            any(s.get("reinitialized") for s in steps if s["index"] == k)))
+                                            any(s.get("reinitialized") for s in own),
+                                            sum(s.get("bank_added", 0) for s in own)))
                 frame_time = 0.0
             self.folder.save(rows, steps, state.state_dict(), elapsed)
             self.events.step(steps[-1])
@@ -234,18 +247,28 @@ class Inversion:
                          f"{how} ({initializer.cache})")
         return initializer
 
-    def _reinitialize(self, loaded: LoadedModel, initializer: Initializer, state: TrackerState, frame: Frame,
-                      detection: Detection) -> bool:
-        """Ask the bank again when the best candidate no longer puts the object where the frame shows it;
-        its hypotheses join the candidates. Returns whether it did."""
-        iou = silhouette_iou(loaded, state.candidates[0], frame.intrinsics, detection.mask)
-        if iou >= self.config.lost_iou:
-            return False
-        found = initializer.poses(frame.image, detection, frame.intrinsics, self.config.reinit_count)
-        state.candidates = torch.cat([state.candidates, found])
-        self.events.warn(f"frame {frame.name}: the object is not where the estimate puts it (silhouette IoU "
-                         f"{iou:.2f}); {len(found)} bank hypotheses join the candidates")
-        return True
+    def _ask_bank(self, loaded: LoadedModel, initializer: Initializer, state: TrackerState, frame: Frame,
+                  detection: Detection) -> tuple[bool, int]:
+        """Before a frame's first step, ask the bank about it. When the best candidate no longer puts the
+        object where the frame shows it (lost), all of ``reinit_count`` hypotheses join the candidates;
+        otherwise the best ``watch_count`` that are more than ``watch_deg`` from every candidate do (a
+        wrong mode of a near-symmetric object keeps the silhouette, so only another attitude tells).
+        Returns (lost, hypotheses added)."""
+        c = self.config
+        if c.lost_iou > 0:
+            iou = silhouette_iou(loaded, state.candidates[0], frame.intrinsics, detection.mask)
+            if iou < c.lost_iou:
+                found = initializer.poses(frame.image, detection, frame.intrinsics, c.reinit_count)
+                state.candidates = torch.cat([state.candidates, found])
+                self.events.warn(f"frame {frame.name}: the object is not where the estimate puts it (silhouette "
+                                 f"IoU {iou:.2f}); {len(found)} bank hypotheses join the candidates")
+                return True, len(found)
+        if c.watch_count == 0:
+            return False, 0
+        found = initializer.poses(frame.image, detection, frame.intrinsics, c.watch_count)
+        apart = attitude_deg(found, state.candidates).min(1).values > c.watch_deg
+        state.candidates = torch.cat([state.candidates, found[apart]])
+        return False, int(apart.sum())
 
     def _starts(self, loaded: LoadedModel, sequence: Sequence, centre: Tensor, detections: list[Detection | None],
                 initializer: Initializer | None) -> Tensor:
@@ -305,11 +328,13 @@ class Inversion:
         return self.config.start + k * self.config.stride
 
     @staticmethod
-    def _step_row(record: StepRecord, index: int, frame: int, step: int, wall: float, reinitialized: bool) -> dict:
+    def _step_row(record: StepRecord, index: int, frame: int, step: int, wall: float, reinitialized: bool,
+                  watched: int) -> dict:
         history = record.result.history
         row = {"index": index, "frame": frame, "step": step, "wall_time_s": wall, "candidates": record.candidates,
                "kept": record.kept, "dropped": record.result.dropped, "pruned": record.result.pruned,
                "iterations": len(history), "loss": record.loss, "reinitialized": reinitialized,
+               "bank_added": watched,
                "best_loss_per_iteration": [float(np.min(h["loss"])) for h in history]}
         if history and "error_deg" in history[0]:
             row["best_error_deg_per_iteration"] = [float(np.min(h["error_deg"])) for h in history]
@@ -317,13 +342,14 @@ class Inversion:
         return row
 
     def _frame_row(self, loaded: LoadedModel, record: StepRecord, sequence: Sequence, k: int, wall: float,
-                   elapsed: float, object_found: bool, reinitialized: bool) -> dict:
+                   elapsed: float, object_found: bool, reinitialized: bool, bank_added: int) -> dict:
         estimate_model = record.estimate.double().numpy()
         q, r = dataset_pose_to_label(loaded.model_to_dataset(estimate_model))
         row = {"index": k, "frame": self._frame_number(k), "name": sequence.frames[k].name,
                "steps": self.config.steps_per_frame, "wall_time_s": wall, "elapsed_s": elapsed, "q": q, "r": r,
                "c2w_model": estimate_model.tolist(), "loss": record.loss, "candidates": record.candidates,
                "dropped": len(record.result.dropped), "object_found": object_found, "reinitialized": reinitialized,
+               "bank_added": bank_added,
                "rotation_deg": None, "translation_m": None,
                "translation_rel": None, "score": None}
         truth = sequence.frames[k].c2w_true

@@ -129,6 +129,13 @@ class InvertConfig:
     --starts.source bank). 0: never."""
     reinit_count: int = 8
     """Hypotheses the bank adds to the candidates when the object was lost."""
+    watch_count: int = 2
+    """Before each frame the bank also matches it (a few hundredths of a second) and its best this many
+    hypotheses that are more than --watch-deg from every candidate join them, so a tracker that took a wrong
+    mode (the half-turn flip of a near-symmetric object) leaves it once the bank sees the right one; the
+    loss decides. With --starts.source bank. 0: never."""
+    watch_deg: float = 30.0
+    """How far (attitude) a bank hypothesis must be from every candidate to join them."""
     steps_per_frame: int = 1
     """Monte Carlo steps spent on each frame before moving to the next (1: the thesis' trajectory method)."""
     sampling: Strategy = "interest_region"
@@ -138,6 +145,10 @@ class InvertConfig:
     """Pixels rendered per candidate and iteration."""
     eval_pixels: int = 1024
     """Fixed random pixels per frame on which candidates are ranked."""
+    rank_region: Literal["object", "image"] = "object"
+    """Where those pixels are drawn: object: in the box of the object found in the frame, widened by a
+    quarter of its size on every side (most pixels then tell candidates apart); image: anywhere (the
+    thesis; on a small object most pixels are background)."""
     render: RenderConfig = field(default_factory=RenderConfig)
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
     monte_carlo: MonteCarloConfig = field(default_factory=MonteCarloConfig)

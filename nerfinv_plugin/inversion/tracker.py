@@ -67,6 +67,9 @@ class Frame:
     name: str = ""
     c2w_true: Tensor | None = None
     """[4, 4] true camera pose in the model frame, when known: for error histories."""
+    rank_region: np.ndarray | None = None
+    """[H, W] bool: where the ranking pixels are drawn (about the object, so that most of them tell
+    candidates apart). None: anywhere in the image."""
 
 
 @dataclass
@@ -154,7 +157,7 @@ class Tracker:
             eval_pixels = state.eval_pixels
         else:
             eval_pixels = torch.as_tensor(
-                PixelSampler("random", self.eval_pixels).prepare(frame.image).sample(state.rng))
+                PixelSampler("random", self.eval_pixels).prepare(frame.image, frame.rank_region).sample(state.rng))
         observed = torch.as_tensor(frame.image, dtype=torch.float32, device=self.loaded.device) / 255.0
         optimizer = self.optimizer if mc.reset_lr or state.step == 0 else _decayed(self.optimizer, state.step)
         error_fn = None

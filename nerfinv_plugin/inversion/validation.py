@@ -100,6 +100,8 @@ INVERT_RULES: dict[str, Rule] = {
     "target": several(number(), 3),
     "lost-iou": number(at_least=0, at_most=1),  # 0: never ask the bank again
     "reinit-count": whole(1),  # turning re-initialization off is --lost-iou 0
+    "watch-count": whole(0),  # 0: the bank does not watch the frames
+    "watch-deg": number(at_least=0, at_most=180),
     "steps-per-frame": whole(1),
     "pixels": whole(1),
     "eval-pixels": whole(1),
