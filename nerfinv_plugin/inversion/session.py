@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
+from typing import assert_never
 
 import numpy as np
 import torch
@@ -308,8 +309,10 @@ class Inversion:
             poses = starts.around_prior(prior, s.count, s.max_deg, s.shift_m, target, self.config.seed)
         elif s.source == "shirt-labels":
             poses = starts.drawn_from(shirt_label_pool(self.config), s.count, rng)
-        else:
+        elif s.source == "training-views":
             poses = starts.training_views(self._training_transforms(loaded), s.count, rng)
+        else:
+            assert_never(s.source)
         return torch.as_tensor(loaded.dataset_to_model(poses), dtype=torch.float32)
 
     @staticmethod
