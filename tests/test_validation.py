@@ -24,7 +24,7 @@ from nerfinv_plugin.inversion.settings import InvertConfig, SettingsError, defau
 from nerfinv_plugin.inversion.validation import INVERT_RULES, check, numeric_options, uncovered, validate
 
 ACCEPTED = {
-    "start": {0}, "stop": {0}, "seed": {0}, "target": {0, -1}, "lost-iou": {0},
+    "start": {0}, "stop": {0}, "seed": {0}, "target": {0, -1}, "lost-iou": {0}, "watch-count": {0}, "watch-deg": {0},
     "starts.min-deg": {0}, "starts.max-deg": {0}, "starts.shift-m": {0}, "starts.prior-q": {-1},
     "starts.prior-r": {0, -1}, "bank.subdivisions": {0}, "bank.silhouette-weight": {0}, "bank.nms-deg": {0},
     "optimizer.min-improvement": {0}, "monte-carlo.spawn": {0}, "monte-carlo.spawn-rot-deg": {0},
