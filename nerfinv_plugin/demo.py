@@ -12,7 +12,7 @@ from pathlib import Path
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, StartConfig
 from nerfinv_plugin.model.loading import Device
-from nerfinv_plugin.report.results import SUMMARY
+from nerfinv_plugin.results.folder import SUMMARY
 from nerfinv_plugin.synth.datasets import (
     TrainingSetSpec,
     speedplus_like_camera,

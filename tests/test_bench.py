@@ -17,6 +17,7 @@ from nerfinv_plugin.bench.tables import GRID_CSV, GRID_JSON, TABLE_MD, table_mar
 from nerfinv_plugin.cli.bench import GridBench, entrypoint
 from nerfinv_plugin.inversion.session import Events
 from nerfinv_plugin.inversion.settings import SettingsError, presets_dir, to_dict
+from nerfinv_plugin.results.records import FrameResult, StepRow
 
 TINY = {"stop": 2, "pixels": 64, "eval_pixels": 128, "device": "cpu", "target": [0.0, 0.0, 0.15],
         "starts": {"source": "truth-offset", "count": 2}, "optimizer.iterations": 3,
@@ -24,9 +25,11 @@ TINY = {"stop": 2, "pixels": 64, "eval_pixels": 128, "device": "cpu", "target": 
 """Two frames, two candidates then two, three iterations: seconds per cell on the CPU."""
 
 
-def _row(rotation: float, wall: float, elapsed: float, translation: float = 0.1) -> dict:
-    return {"rotation_deg": rotation, "wall_time_s": wall, "elapsed_s": elapsed, "translation_m": translation,
-            "translation_rel": translation / 5}
+def _row(rotation: float | None, wall: float, elapsed: float, translation: float = 0.1) -> FrameResult:
+    """A frame's result with the errors and times given; what scoring does not read is filler."""
+    return FrameResult(index=0, frame=0, name="f.png", steps=1, wall_time_s=wall, elapsed_s=elapsed,
+                       q=[1.0, 0.0, 0.0, 0.0], r=[0.0, 0.0, 5.0], c2w_model=[], loss=0.01, candidates=1, dropped=0,
+                       rotation_deg=rotation, translation_m=translation, translation_rel=translation / 5)
 
 
 def test_success_is_the_last_frame_under_each_threshold():
@@ -42,7 +45,7 @@ def test_success_is_the_last_frame_under_each_threshold():
     on_the_line = cell_metrics([_row(5.0, 1.0, 1.0)])  # "less than": a threshold itself is not under it
     assert (on_the_line["under_5deg"], on_the_line["under_10deg"], on_the_line["time_to_5deg_s"]) == (False, True, None)
     with pytest.raises(ScoringError, match="true pose"):
-        cell_metrics([{**_row(1.0, 1.0, 1.0), "rotation_deg": None}])
+        cell_metrics([_row(None, 1.0, 1.0)])
     with pytest.raises(ScoringError, match="no frame"):
         cell_metrics([])
 
@@ -166,7 +169,7 @@ def test_an_interrupted_grid_resumes_and_runs_only_the_missing_cells(toy_run, tm
     started: list[tuple[str, bool]] = []
 
     def interrupt_second_cell(cell) -> Events:
-        def step(row: dict) -> None:
+        def step(row: StepRow) -> None:
             if cell.label == "toy-region-s0":
                 raise KeyboardInterrupt
         return Events(step=step)

@@ -19,7 +19,7 @@ import tyro
 from nerfinv_plugin.cli.demo import Demo
 from nerfinv_plugin.cli.invert import Invert, entrypoint
 from nerfinv_plugin.demo import render_data, train_model
-from nerfinv_plugin.inversion.optimizer import OptimizerConfig
+from nerfinv_plugin.inversion.optimizer import IterationRecord, OptimizerConfig
 from nerfinv_plugin.inversion.session import Events, Inversion
 from nerfinv_plugin.inversion.settings import (
     InvertConfig,
@@ -32,7 +32,7 @@ from nerfinv_plugin.inversion.settings import (
     write_config,
 )
 from nerfinv_plugin.inversion.tracker import MonteCarloConfig
-from nerfinv_plugin.report.results import CSV_COLUMNS, RunFolder
+from nerfinv_plugin.results.folder import CSV_COLUMNS, RunFolder
 from nerfinv_plugin.synth.datasets import TrainingSetSpec, speedplus_like_camera, write_shirt_trajectories
 from nerfinv_plugin.synth.trajectories import TrajectorySpec
 
@@ -73,11 +73,11 @@ def test_cli_end_to_end_writes_results_that_track_the_target(toy_run, shirt, tmp
     entrypoint()
     run = tmp_path / "e" / "nerfinv" / "t"
     rows = RunFolder(run).rows()
-    assert [r["frame"] for r in rows] == [0, 1, 2] and [r["candidates"] for r in rows] == [6, 6, 3]
-    errors = np.array([r["rotation_deg"] for r in rows])
+    assert [r.frame for r in rows] == [0, 1, 2] and [r.candidates for r in rows] == [6, 6, 3]
+    errors = np.array([r.rotation_deg for r in rows])
     assert np.isfinite(errors).all()
     assert errors.min() < 8.0 and errors[-1] < 12.0, errors  # starts were 15-20 degrees off
-    assert all(r["translation_m"] < 0.5 for r in rows)
+    assert all(r.translation_m < 0.5 for r in rows)
     csv_lines = (run / "results.csv").read_text().splitlines()
     assert csv_lines[0].split(",") == list(CSV_COLUMNS) and len(csv_lines) == 4
     summary = json.loads((run / "summary.json").read_text())
@@ -100,18 +100,18 @@ def test_estimate_in_the_dataset_frame_matches_the_model_frame_pose(toy_run, shi
     Inversion.create(config).run()
     row = RunFolder(tmp_path / "e" / "nerfinv" / "t").rows()[0]
     loaded = load_model(toy_run[0], device="cpu")
-    c2w_gl = loaded.model_to_dataset(np.array(row["c2w_model"]))
+    c2w_gl = loaded.model_to_dataset(np.array(row.c2w_model))
     c2w_cv = c2w_gl @ np.diag([1.0, -1.0, -1.0, 1.0])
     # The label is the body in the camera frame: R = c2w_cv[:3, :3]^T, r = -R c2w_cv[:3, 3].
-    np.testing.assert_allclose(quat_wxyz_to_rotmat(np.array(row["q"])), c2w_cv[:3, :3].T, atol=1e-6)
-    np.testing.assert_allclose(row["r"], -c2w_cv[:3, :3].T @ c2w_cv[:3, 3], atol=1e-6)
+    np.testing.assert_allclose(quat_wxyz_to_rotmat(np.array(row.q)), c2w_cv[:3, :3].T, atol=1e-6)
+    np.testing.assert_allclose(row.r, -c2w_cv[:3, :3].T @ c2w_cv[:3, 3], atol=1e-6)
 
 
 def test_interrupted_and_resumed_run_equals_an_uninterrupted_one(toy_run, shirt, tmp_path):
     small = dict(stop=3, optimizer=OptimizerConfig(iterations=6), pixels=64, eval_pixels=256)
     Inversion.create(_config(toy_run, shirt, tmp_path, timestamp="whole", **small)).run()
 
-    def stop_in_second_step(i: int, record: dict) -> None:
+    def stop_in_second_step(i: int, record: IterationRecord) -> None:
         if len(RunFolder(tmp_path / "e" / "nerfinv" / "cut").rows()) == 1 and i == 3:
             raise KeyboardInterrupt
 
@@ -125,7 +125,7 @@ def test_interrupted_and_resumed_run_equals_an_uninterrupted_one(toy_run, shirt,
     assert len(resumed) == 3
     for a, b in zip(whole, resumed):
         for key in ("q", "r", "c2w_model", "loss", "rotation_deg", "translation_m", "candidates"):
-            assert a[key] == b[key], (key, a[key], b[key])
+            assert getattr(a, key) == getattr(b, key), (key, getattr(a, key), getattr(b, key))
 
 
 def test_ctrl_c_keeps_the_finished_frames_and_says_how_to_resume(toy_run, shirt, tmp_path):
@@ -164,7 +164,7 @@ def test_a_candidate_that_turns_nan_is_dropped_with_a_message(toy_run, shirt, tm
     config = _config(toy_run, shirt, tmp_path, stop=2, optimizer=OptimizerConfig(iterations=3))
     Inversion.create(config, Events(warn=warnings.append)).run()
     rows = RunFolder(tmp_path / "e" / "nerfinv" / "t").rows()
-    assert len(rows) == 2 and rows[0]["dropped"] == 1 and np.isfinite(rows[1]["rotation_deg"])
+    assert len(rows) == 2 and rows[0].dropped == 1 and np.isfinite(rows[1].rotation_deg)
     assert len(warnings) == 1 and "dropped candidate(s) 2" in warnings[0]
 
 
@@ -299,7 +299,7 @@ def test_interrupted_demo_inversion_continues(tmp_path):
     render_data(demo, lambda: None)
     train_model(demo)
 
-    def stop_after_first_frame(i: int, record: dict) -> None:
+    def stop_after_first_frame(i: int, record: IterationRecord) -> None:
         if RunFolder(demo.run_dir).rows():
             raise KeyboardInterrupt
 
@@ -308,7 +308,7 @@ def test_interrupted_demo_inversion_continues(tmp_path):
     assert len(RunFolder(demo.run_dir).rows()) == 1
     demo.main()
     rows = RunFolder(demo.run_dir).rows()
-    assert len(rows) == 2 and np.isfinite([r["rotation_deg"] for r in rows]).all()
+    assert len(rows) == 2 and np.isfinite([r.rotation_deg for r in rows]).all()
 
 
 def test_prior_starts_surround_the_given_label_and_need_one(toy_run, shirt, tmp_path):

@@ -16,7 +16,7 @@ from nerfinv_plugin.initialization.bank import BankConfig
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.session import Events, Inversion
 from nerfinv_plugin.inversion.settings import InvertConfig
-from nerfinv_plugin.report.results import RunFolder
+from nerfinv_plugin.results.folder import RunFolder
 from nerfinv_plugin.synth.datasets import speedplus_like_camera, write_shirt_trajectories
 from nerfinv_plugin.synth.trajectories import TrajectorySpec
 
@@ -62,7 +62,7 @@ def test_the_bare_command_tracks_the_fixture_from_nothing(toy_run, shirt, tmp_pa
     entrypoint()
     run = tmp_path / "roe1" / "nerfinv" / "t"
     rows = RunFolder(run).rows()
-    errors = np.array([r["rotation_deg"] for r in rows])
+    errors = np.array([r.rotation_deg for r in rows])
     assert len(rows) == 6 and (errors[2:] < 10.0).all(), errors
     summary = json.loads((run / "summary.json").read_text())
     assert summary["starts"] == "bank" and summary["bank"]["views"] == 642
@@ -80,7 +80,7 @@ def test_the_default_path_never_reads_the_truth(toy_run, shirt, tmp_path):
     for poses in ("true", "none", "random"):
         folder = _folder_of(shirt, tmp_path / poses, poses)
         summary = Inversion.create(_quick(toy_run, folder, tmp_path / f"out-{poses}", stop=3)).run()
-        estimates[poses] = [row["c2w_model"] for row in RunFolder(Path(summary["run"])).rows()]
+        estimates[poses] = [row.c2w_model for row in RunFolder(Path(summary.run)).rows()]
     assert estimates["true"] == estimates["none"] == estimates["random"]
 
 
@@ -91,10 +91,10 @@ def test_a_frame_without_the_object_keeps_the_prediction_and_the_run_goes_on(toy
     warnings: list[str] = []
     summary = Inversion.create(_quick(toy_run, folder, tmp_path / "out", stop=3),
                                Events(warn=warnings.append)).run()
-    rows = RunFolder(Path(summary["run"])).rows()
-    assert [r["object_found"] for r in rows] == [True, False, True]
-    assert rows[1]["c2w_model"] == rows[0]["c2w_model"]
-    assert summary["frames_without_object"] == 1 and summary["complete"]
+    rows = RunFolder(Path(summary.run)).rows()
+    assert [r.object_found for r in rows] == [True, False, True]
+    assert rows[1].c2w_model == rows[0].c2w_model
+    assert summary.frames_without_object == 1 and summary.complete
     assert any("no object found" in w and second.name in w for w in warnings)
 
 
@@ -133,10 +133,10 @@ def test_the_bank_watch_takes_a_tracker_off_a_wrong_mode(toy_run, shirt, tmp_pat
     config = _quick(toy_run, shirt / "roe1", tmp_path, lost_iou=0.0, watch_count=watch_count,
                     optimizer=OptimizerConfig(iterations=30))
     summary = Inversion.create(config).run()
-    rows = RunFolder(Path(summary["run"])).rows()
-    errors = np.array([r["rotation_deg"] for r in rows])
+    rows = RunFolder(Path(summary.run)).rows()
+    errors = np.array([r.rotation_deg for r in rows])
     assert errors[0] > 90.0, errors  # the start really was the wrong mode
-    added = [r["bank_added"] for r in rows]
+    added = [r.bank_added for r in rows]
     if watch_count:
         assert errors[-2:].max() < 10.0 and sum(added) > 0, (errors, added)
     else:

@@ -16,8 +16,9 @@ from nerfinv_plugin.inversion.session import Inversion
 from nerfinv_plugin.inversion.settings import InvertConfig, StartConfig, write_config
 from nerfinv_plugin.report.build import REPORT_HTML, ReportError, write_report
 from nerfinv_plugin.report.figures import evenly_spaced, step_points
-from nerfinv_plugin.report.results import RunFolder
-from nerfinv_plugin.report.summary import summarize
+from nerfinv_plugin.results.folder import RunFolder
+from nerfinv_plugin.results.records import ErrorStatistics, FrameResult, RunSummary, StepRow
+from nerfinv_plugin.results.summary import summarize
 
 FIGURES = ("error_vs_time.png", "loss_error_per_iteration.png", "error_per_frame.png")
 ERROR_FIGURES = ("error_vs_time.png", "error_per_frame.png")
@@ -28,25 +29,23 @@ ROTATION = (1.0, 5.0, 6.0, 12.0)
 TRANSLATION_REL = (0.005, 0.05, 0.07, 0.2)
 
 
-def _row(k: int, truth: bool, wall: float = 1.0) -> dict:
-    errors = {"rotation_deg": None, "translation_m": None, "translation_rel": None, "score": None}
+def _row(k: int, truth: bool, wall: float = 1.0) -> FrameResult:
+    errors = {}
     if truth:
         errors = {"rotation_deg": ROTATION[k], "translation_m": 5 * TRANSLATION_REL[k],
                   "translation_rel": TRANSLATION_REL[k], "score": np.radians(ROTATION[k]) + TRANSLATION_REL[k]}
-    return {"index": k, "frame": 2 * k, "name": f"img<{k}>.png", "steps": 2, "wall_time_s": wall,
-            "elapsed_s": wall * (k + 1), "q": [1.0, 0.0, 0.0, 0.0], "r": [0.0, 0.0, 5.0],
-            "c2w_model": np.eye(4).tolist(), "loss": 0.01 / (k + 1), "candidates": 6, "dropped": 0, **errors}
+    return FrameResult(index=k, frame=2 * k, name=f"img<{k}>.png", steps=2, wall_time_s=wall,
+                       elapsed_s=wall * (k + 1), q=[1.0, 0.0, 0.0, 0.0], r=[0.0, 0.0, 5.0],
+                       c2w_model=np.eye(4).tolist(), loss=0.01 / (k + 1), candidates=6, dropped=0, **errors)
 
 
-def _step(k: int, within: int, truth: bool) -> dict:
+def _step(k: int, within: int, truth: bool) -> StepRow:
     """Two steps per frame of 5 iterations; the history's last error differs from the frame's error, so
     a test can tell which one a figure used."""
-    step = {"index": k, "frame": 2 * k, "step": 2 * k + within, "wall_time_s": 0.5, "candidates": 6 - within,
-            "kept": 2, "dropped": [], "loss": 0.01, "best_loss_per_iteration": list(np.geomspace(0.1, 0.01, 5))}
-    if truth:
-        history = list(np.linspace(30.0, 20.0 + k + within, 5))
-        step |= {"best_error_deg_per_iteration": history, "error_of_best_loss_per_iteration": history}
-    return step
+    history = list(np.linspace(30.0, 20.0 + k + within, 5)) if truth else None
+    return StepRow(index=k, frame=2 * k, step=2 * k + within, wall_time_s=0.5, candidates=6 - within, kept=2,
+                   dropped=[], iterations=5, loss=0.01, best_loss_per_iteration=list(np.geomspace(0.1, 0.01, 5)),
+                   best_error_deg_per_iteration=history, error_of_best_loss_per_iteration=history)
 
 
 def _run(root: Path, truth: bool = True, frames: int = 4) -> Path:
@@ -59,7 +58,8 @@ def _run(root: Path, truth: bool = True, frames: int = 4) -> Path:
     folder = RunFolder(run)
     folder.export([_row(k, truth) for k in range(frames)],
                   [_step(k, within, truth) for k in range(frames) for within in (0, 1)])
-    folder.write_summary({"frames_total": frames, "complete": True, "model_step": 999, "device": "cpu"})
+    folder.write_summary(RunSummary(frames_done=frames, frames_total=frames, complete=True, model_step=999,
+                                    device="cpu"))
     return run
 
 
@@ -72,21 +72,21 @@ def _png(path: Path) -> np.ndarray:
 def test_summary_matches_hand_computed_numbers_and_skips_frames_without_truth():
     rows = [_row(0, True, 1.0), _row(1, True, 2.0), _row(1, False, 3.0), _row(2, True, 4.0), _row(3, True, 5.0)]
     s = summarize(rows)
-    assert s["frames_done"] == 5 and s["frames_with_truth"] == 4
-    assert s["wall_time_s"] == pytest.approx(15.0) and s["mean_time_per_frame_s"] == pytest.approx(3.0)
-    assert s["rotation_deg"] == pytest.approx({"mean": 6.0, "median": 5.5, "max": 12.0, "final": 12.0})
-    assert s["translation_rel"] == pytest.approx({"mean": 0.08125, "median": 0.06, "max": 0.2, "final": 0.2})
-    assert s["translation_m"]["mean"] == pytest.approx(5 * 0.08125)
-    assert s["success_rotation"] == pytest.approx({"2deg": 0.25, "5deg": 0.25, "10deg": 0.75})
-    assert s["success_translation"] == pytest.approx({"0.01": 0.25, "0.05": 0.25, "0.1": 0.75})
-    assert s["final_loss"] == rows[-1]["loss"]
+    assert s.frames_done == 5 and s.frames_with_truth == 4
+    assert s.wall_time_s == pytest.approx(15.0) and s.mean_time_per_frame_s == pytest.approx(3.0)
+    assert s.rotation_deg == ErrorStatistics(mean=6.0, median=5.5, max=12.0, final=12.0)
+    assert s.translation_rel.to_json() == pytest.approx({"mean": 0.08125, "median": 0.06, "max": 0.2, "final": 0.2})
+    assert s.translation_m.mean == pytest.approx(5 * 0.08125)
+    assert s.success_rotation == pytest.approx({"2deg": 0.25, "5deg": 0.25, "10deg": 0.75})
+    assert s.success_translation == pytest.approx({"0.01": 0.25, "0.05": 0.25, "0.1": 0.75})
+    assert s.final_loss == rows[-1].loss
 
 
 def test_summary_without_truth_or_rows_has_no_error_numbers():
     s = summarize([_row(0, False, 2.0), _row(1, False, 4.0)])
-    assert s["mean_time_per_frame_s"] == pytest.approx(3.0)
-    assert not {"rotation_deg", "success_rotation", "frames_with_truth"} & s.keys()
-    assert summarize([]) == {"frames_done": 0}
+    assert s.mean_time_per_frame_s == pytest.approx(3.0)
+    assert not {"rotation_deg", "success_rotation", "frames_with_truth"} & s.to_json().keys()
+    assert summarize([]).to_json() == {"frames_done": 0}
 
 
 def test_error_vs_time_takes_frame_errors_from_results_and_others_from_the_history():

@@ -112,7 +112,7 @@ def test_same_seed_same_numbers(toy_sequence):
     a, b, c = run(7), run(7), run(8)
     for ra, rb in zip(a, b):
         assert ra.loss == rb.loss and torch.equal(ra.estimate, rb.estimate)
-        assert np.array_equal(ra.result.history[-1]["loss"], rb.result.history[-1]["loss"])
+        assert np.array_equal(ra.result.history[-1].loss, rb.result.history[-1].loss)
     assert any(ra.loss != rc.loss for ra, rc in zip(a, c))
 
 
@@ -202,12 +202,12 @@ def test_pruning_stops_far_candidates_and_patience_ends_a_step_early(toy_sequenc
     result = optimize_candidates(loaded, start, observed, frame.intrinsics, sampler, eval_pixels, centre, config,
                                  np.random.default_rng(0), min_candidates=2)
     # Pruned after the second iteration: every candidate above 1.2 x that iteration's best, but the best two.
-    at_pruning = result.history[1]["loss"]
+    at_pruning = result.history[1].loss
     expected = {i for i in np.argsort(at_pruning)[2:] if at_pruning[i] > 1.2 * at_pruning.min()}
     assert expected and set(result.pruned) == expected and not result.dropped
     assert torch.isinf(result.losses[result.pruned]).all()
     assert torch.isfinite(result.losses[[i for i in range(6) if i not in expected]]).all()
-    assert np.isinf(result.history[2]["loss"][result.pruned]).all()  # no longer rendered
+    assert np.isinf(result.history[2].loss[result.pruned]).all()  # no longer rendered
     # Patience: a demanded 90% improvement per iteration never comes, so the step ends after 1 + 2.
     patient = OptimizerConfig(iterations=20, patience=2, min_improvement=0.9)
     short = optimize_candidates(loaded, near, observed, frame.intrinsics, sampler, eval_pixels, centre, patient,

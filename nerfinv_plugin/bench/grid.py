@@ -30,7 +30,7 @@ from nerfinv_plugin.bench.scoring import cell_metrics
 from nerfinv_plugin.bench.tables import write_tables
 from nerfinv_plugin.inversion.session import Events, Inversion, new_run_folder
 from nerfinv_plugin.inversion.settings import InvertConfig, defaults_with_preset, read_config, to_dict, updated
-from nerfinv_plugin.report.results import CONFIG, SUMMARY, RunFolder
+from nerfinv_plugin.results.folder import CONFIG, SUMMARY, RunFolder
 
 GRID_KEYS = ("name", "preset", "overrides", "seeds", "cases", "variants")
 CASE_KEYS = ("load_config", "sequence", "overrides")

@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 
 from nerfinv_plugin.bench.scoring import FIRST_UNDER_DEG, SUCCESS_DEG, aggregate, under_key
-from nerfinv_plugin.report.results import write_atomic
+from nerfinv_plugin.results.atomic import write_atomic
 
 DPI = 120
 SUCCESS_PNG = "success.png"

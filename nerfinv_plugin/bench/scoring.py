@@ -8,6 +8,8 @@ frames are kept beside it, to tell a run that never came close from one that los
 
 import numpy as np
 
+from nerfinv_plugin.results.records import FrameResult
+
 SUCCESS_DEG = (2.0, 3.0, 5.0, 10.0)
 """Thresholds on the last frame's rotation error: the thesis reports 3, 5 and 10 degrees; 2 is the
 tightest threshold of ``ns-invert``'s own summary."""
@@ -26,18 +28,18 @@ def under_key(threshold_deg: float) -> str:
     return f"under_{threshold_deg:g}deg"
 
 
-def cell_metrics(rows: list[dict]) -> dict:
+def cell_metrics(rows: list[FrameResult]) -> dict:
     """The numbers a grid keeps of one run, from its per-frame rows (``results.jsonl``)."""
     if not rows:
         raise ScoringError("the run finished no frame")
-    if any(row.get("rotation_deg") is None for row in rows):
+    if any(row.rotation_deg is None for row in rows):
         raise ScoringError("the sequence has frames without a true pose, and a grid scores runs against it")
-    rotation = np.array([row["rotation_deg"] for row in rows], dtype=float)
-    wall = np.array([row["wall_time_s"] for row in rows], dtype=float)
-    first = next((row["elapsed_s"] for row in rows if row["rotation_deg"] < FIRST_UNDER_DEG), None)
+    rotation = np.array([row.rotation_deg for row in rows], dtype=float)
+    wall = np.array([row.wall_time_s for row in rows], dtype=float)
+    first = next((row.elapsed_s for row in rows if row.rotation_deg < FIRST_UNDER_DEG), None)
     return {"frames": len(rows), "final_rotation_deg": float(rotation[-1]), "min_rotation_deg": float(rotation.min()),
-            "mean_rotation_deg": float(rotation.mean()), "final_translation_m": float(rows[-1]["translation_m"]),
-            "final_translation_rel": float(rows[-1]["translation_rel"]), "wall_time_s": float(wall.sum()),
+            "mean_rotation_deg": float(rotation.mean()), "final_translation_m": float(rows[-1].translation_m),
+            "final_translation_rel": float(rows[-1].translation_rel), "wall_time_s": float(wall.sum()),
             "time_per_frame_s": float(wall.mean()), "time_to_5deg_s": None if first is None else float(first),
             **{under_key(t): bool(rotation[-1] < t) for t in SUCCESS_DEG}}
 

@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 
 from nerfinv_plugin.bench.scoring import ALL_CASES, SUCCESS_DEG, aggregate, under_key
-from nerfinv_plugin.report.results import write_atomic
+from nerfinv_plugin.results.atomic import write_atomic
 
 GRID_CSV = "grid.csv"
 TABLE_MD = "table.md"

@@ -19,7 +19,7 @@ from nerfinv_plugin.demo import (
     train_model,
 )
 from nerfinv_plugin.inversion.validation import INVERT_RULES, check, under, whole
-from nerfinv_plugin.report.results import CONFIG
+from nerfinv_plugin.results.folder import CONFIG
 
 RULES = {
     "frames": whole(1), "training-iterations": whole(1), "iterations": whole(1), "seed": whole(0),

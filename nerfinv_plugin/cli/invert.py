@@ -11,41 +11,44 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from nerfinv_plugin.cli import Interrupted, run
 from nerfinv_plugin.data.sequences import SequenceError
+from nerfinv_plugin.inversion.optimizer import IterationRecord
 from nerfinv_plugin.inversion.session import Events, Inversion, InversionError
 from nerfinv_plugin.inversion.settings import InvertConfig, SettingsError, defaults_with_preset
 from nerfinv_plugin.inversion.validation import validate
 from nerfinv_plugin.model.loaded import ModelLoadError
 from nerfinv_plugin.report.build import write_report
+from nerfinv_plugin.results.records import FrameResult, RunSummary, StepRow
 
 BAD_INPUT = (ModelLoadError, SequenceError, SettingsError, InversionError, FloatingPointError)
 """Errors that mean the input or the settings are wrong: one line and exit code 2, no traceback."""
 
 
-def _frame_line(row: dict) -> str:
-    error = "" if row["rotation_deg"] is None else \
-        f"rotation {row['rotation_deg']:.2f} deg, translation {row['translation_m']:.3f} m, "
-    flags = "" if row.get("object_found", True) else ", no object found"
-    flags += ", bank asked again" if row.get("reinitialized") else \
-        (f", {row['bank_added']} bank hypotheses joined" if row.get("bank_added") else "")
-    return (f"frame {row['frame']} ({row['name']}): {error}loss {row['loss']:.5f}, {row['candidates']} candidates, "
-            f"{row['wall_time_s']:.1f} s{flags}")
+def _frame_line(row: FrameResult) -> str:
+    error = "" if row.rotation_deg is None else \
+        f"rotation {row.rotation_deg:.2f} deg, translation {row.translation_m:.3f} m, "
+    flags = "" if row.object_found else ", no object found"
+    flags += ", bank asked again" if row.reinitialized else \
+        (f", {row.bank_added} bank hypotheses joined" if row.bank_added else "")
+    return (f"frame {row.frame} ({row.name}): {error}loss {row.loss:.5f}, {row.candidates} candidates, "
+            f"{row.wall_time_s:.1f} s{flags}")
 
 
-def _summary_lines(summary: dict) -> list[str]:
-    lines = [f"{summary['frames_done']} of {summary['frames_total']} frames in "
-             f"{summary.get('wall_time_s', 0.0):.0f} s ({summary.get('mean_time_per_frame_s', 0.0):.1f} s a frame)"]
-    if "rotation_deg" in summary:
-        rot, success = summary["rotation_deg"], summary["success_rotation"]
-        lines.append(f"rotation error mean {rot['mean']:.2f} deg, median {rot['median']:.2f}, final "
-                     f"{rot['final']:.2f}; under 2/5/10 deg: " +
+def _summary_lines(summary: RunSummary) -> list[str]:
+    wall = 0.0 if summary.wall_time_s is None else summary.wall_time_s
+    per_frame = 0.0 if summary.mean_time_per_frame_s is None else summary.mean_time_per_frame_s
+    lines = [f"{summary.frames_done} of {summary.frames_total} frames in {wall:.0f} s ({per_frame:.1f} s a frame)"]
+    if summary.rotation_deg is not None:
+        rot, success = summary.rotation_deg, summary.success_rotation
+        lines.append(f"rotation error mean {rot.mean:.2f} deg, median {rot.median:.2f}, final "
+                     f"{rot.final:.2f}; under 2/5/10 deg: " +
                      " / ".join(f"{100 * v:.0f}%" for v in success.values()))
-        lines.append(f"translation error mean {summary['translation_m']['mean']:.3f} m "
-                     f"({100 * summary['translation_rel']['mean']:.1f}% of range); "
-                     f"SPEC score mean {summary['score']['mean']:.4f}")
+        lines.append(f"translation error mean {summary.translation_m.mean:.3f} m "
+                     f"({100 * summary.translation_rel.mean:.1f}% of range); "
+                     f"SPEC score mean {summary.score.mean:.4f}")
     return lines
 
 
-def invert(config: InvertConfig, console: Console) -> dict:
+def invert(config: InvertConfig, console: Console) -> RunSummary:
     """Run with a rich progress bar (loss and error of the best candidate) and one line per frame."""
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                TextColumn("loss {task.fields[loss]}  error {task.fields[error]}"))
@@ -60,13 +63,13 @@ def invert(config: InvertConfig, console: Console) -> dict:
             progress.update(task, total=total_steps * per_step, completed=done_steps * per_step,
                             description=f"step {done_steps + 1}/{total_steps}")
 
-        def iteration(i: int, record: dict) -> None:
-            best = int(np.argmin(record["loss"]))
-            error = f"{record['error_deg'][best]:.2f} deg" if "error_deg" in record else "-"
-            progress.update(task, advance=1, loss=f"{record['loss'][best]:.5f}", error=error)
+        def iteration(i: int, record: IterationRecord) -> None:
+            best = int(np.argmin(record.loss))
+            error = "-" if record.error_deg is None else f"{record.error_deg[best]:.2f} deg"
+            progress.update(task, advance=1, loss=f"{record.loss[best]:.5f}", error=error)
 
-        def step(row: dict) -> None:
-            progress.update(task, description=f"step {min(row['step'] + 2, steps)}/{steps}")
+        def step(row: StepRow) -> None:
+            progress.update(task, description=f"step {min(row.step + 2, steps)}/{steps}")
 
         def bank(views: int) -> Callable[[int], None]:
             bank_task = progress.add_task("view bank", total=views, loss="-", error="-")

@@ -10,11 +10,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from nerfinv_plugin.cli import run
 from nerfinv_plugin.inversion.validation import SettingsError, check, number, under, whole
+from nerfinv_plugin.results.atomic import write_atomic
 from nerfinv_plugin.synth.camera_images import write_camera_images
 from nerfinv_plugin.synth.datasets import (
     TrainingSetSpec,
     speedplus_like_camera,
-    write_json_atomic,
     write_shirt_trajectories,
     write_training_set,
 )
@@ -114,7 +114,7 @@ class Synth:
             if sp.views:
                 write_speedplus(self.out / "speedplus", self.scene, sp.train, sp.validation, sp.width, sp.height,
                                 sp.distortion, self.seed, self.spp, step, sp.range_m, sp.range_jitter)
-        write_json_atomic(self.out / "synth.json", json.loads(json.dumps(asdict(self), default=str)))
+        write_atomic(self.out / "synth.json", json.dumps(asdict(self), indent=2, default=str))
         console.print(f"[green]wrote {self.out}[/green]")
         if n_train:
             console.print(f"train a model: ns-train nerfacto-tiny --data {self.out}")

@@ -52,6 +52,17 @@ class OptimizerConfig:
     """How far above the best loss a candidate may be and stay in the step."""
 
 
+@dataclass(frozen=True)
+class IterationRecord:
+    """One gradient iteration of a step, as the history keeps it."""
+
+    loss: np.ndarray
+    """[N] loss of every candidate on the iteration's pixels; ``inf`` for dropped and pruned candidates."""
+    error_deg: np.ndarray | None = None
+    """[N] rotation error of every candidate (degrees) at the poses the loss was measured at, when the
+    truth is known."""
+
+
 @dataclass
 class StepResult:
     """Candidates after one step of optimization."""
@@ -60,8 +71,8 @@ class StepResult:
     """[N, 4, 4] final poses (model frame, OpenGL axes)."""
     losses: Tensor
     """[N] loss of each final pose on the frame's evaluation pixels; ``inf`` for dropped candidates."""
-    history: list[dict] = field(default_factory=list)
-    """Per iteration: ``loss`` [N] on that iteration's pixels, and ``error_deg`` [N] when known."""
+    history: list[IterationRecord] = field(default_factory=list)
+    """One record per iteration run."""
     dropped: list[int] = field(default_factory=list)
     """Candidates removed because their pose, loss or gradient became NaN or infinite."""
     pruned: list[int] = field(default_factory=list)
@@ -98,7 +109,7 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, in
                         sampler: PixelSampler, eval_pixels: Tensor, centre: Tensor, config: OptimizerConfig,
                         rng: np.random.Generator,
                         error_fn: Callable[[Tensor], Tensor] | None = None,
-                        on_iteration: Callable[[int, dict], None] | None = None,
+                        on_iteration: Callable[[int, IterationRecord], None] | None = None,
                         min_candidates: int = 1) -> StepResult:
     """Optimize candidates ``start`` [N, 4, 4] against ``observed`` [H, W, 3] (float in [0, 1]).
 
@@ -147,9 +158,8 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, in
         optimizer.step()
         scheduler.step()
         losses = torch.where(active, losses, torch.inf)
-        record = {"loss": losses.cpu().numpy()}
-        if error_fn is not None:
-            record["error_deg"] = error_fn(c2w.detach()).cpu().numpy()
+        record = IterationRecord(losses.cpu().numpy(),
+                                 None if error_fn is None else error_fn(c2w.detach()).cpu().numpy())
         history.append(record)
         if on_iteration is not None:
             on_iteration(iteration, record)

@@ -28,14 +28,15 @@ from nerfinv_plugin.initialization.detect import Detection, MaskError, detection
 from nerfinv_plugin.initialization.extent import object_radius
 from nerfinv_plugin.initialization.initializer import Initializer, silhouette_iou
 from nerfinv_plugin.inversion import starts
-from nerfinv_plugin.inversion.optimizer import StepResult
+from nerfinv_plugin.inversion.optimizer import IterationRecord, StepResult
 from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, read_config, write_config
 from nerfinv_plugin.inversion.tracker import Frame, StepRecord, Tracker, TrackerState
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.loading import load_model
 from nerfinv_plugin.model.render import set_sample_counts
-from nerfinv_plugin.report.results import CONFIG, RunFolder
-from nerfinv_plugin.report.summary import summarize
+from nerfinv_plugin.results.folder import CONFIG, RunFolder
+from nerfinv_plugin.results.records import BankSummary, FrameResult, RunSummary, StepRow
+from nerfinv_plugin.results.summary import summarize
 
 BOUNDED_PROPOSAL_SAMPLES = (8, 4)
 """Samples per proposal level when rays are bounded to the object (docs/benchmarks.md: the same inversion
@@ -55,9 +56,9 @@ class Events:
     """What a front end hears while a run goes on (progress bars, messages). All optional."""
 
     begin: Callable[[int, int, int], None] = lambda total_steps, done_steps, iterations: None
-    iteration: Callable[[int, dict], None] = lambda iteration, record: None
-    step: Callable[[dict], None] = lambda step: None
-    frame: Callable[[dict], None] = lambda row: None
+    iteration: Callable[[int, IterationRecord], None] = lambda iteration, record: None
+    step: Callable[[StepRow], None] = lambda step: None
+    frame: Callable[[FrameResult], None] = lambda row: None
     warn: Callable[[str], None] = lambda message: None
     info: Callable[[str], None] = lambda message: None
     bank: Callable[[int], Callable[[int], None]] = lambda views: (lambda done: None)
@@ -155,7 +156,7 @@ class Inversion:
                                  "printed when the run started")
         return cls(read_config(Path(path) / CONFIG), RunFolder(path), events or Events())
 
-    def run(self) -> dict:
+    def run(self) -> RunSummary:
         """Run (or continue) to the end of the sequence; return the summary."""
         c = self.config
         loaded = load_model(c.load_config, device=c.device)
@@ -184,12 +185,12 @@ class Inversion:
         if saved is None:
             rows, steps, elapsed, state = [], [], 0.0, tracker.begin(start)
         else:
-            rows, steps, elapsed = saved["rows"], saved["steps"], saved["elapsed_s"]
-            state = TrackerState.from_state_dict(saved["tracker"])
+            rows, steps, elapsed = saved.rows, saved.steps, saved.elapsed_s
+            state = TrackerState.from_state_dict(saved.tracker)
             self.folder.export(rows, steps)  # catch up if the last run stopped between the two writes
         total = len(frames) * c.steps_per_frame
         self.events.begin(total, len(steps), c.optimizer.iterations)
-        frame_time = sum(s["wall_time_s"] for s in steps if s["index"] == len(rows))
+        frame_time = sum(s.wall_time_s for s in steps if s.index == len(rows))
         for step_index in range(len(steps), total):
             k, within = divmod(step_index, c.steps_per_frame)
             tic = time.perf_counter()
@@ -215,10 +216,9 @@ class Inversion:
                                  f"{', '.join(map(str, record.result.dropped))} (non-finite pose, loss or "
                                  "gradient); going on with the others")
             if within == c.steps_per_frame - 1:
-                own = [s for s in steps if s["index"] == k]
+                own = [s for s in steps if s.index == k]
                 rows.append(self._frame_row(loaded, record, sequence, k, frame_time, elapsed, detection is not None,
-                                            any(s.get("reinitialized") for s in own),
-                                            sum(s.get("bank_added", 0) for s in own)))
+                                            any(s.reinitialized for s in own), sum(s.bank_added for s in own)))
                 frame_time = 0.0
             self.folder.save(rows, steps, state.state_dict(), elapsed)
             self.events.step(steps[-1])
@@ -332,50 +332,49 @@ class Inversion:
 
     @staticmethod
     def _step_row(record: StepRecord, index: int, frame: int, step: int, wall: float, reinitialized: bool,
-                  watched: int) -> dict:
+                  watched: int) -> StepRow:
         history = record.result.history
-        row = {"index": index, "frame": frame, "step": step, "wall_time_s": wall, "candidates": record.candidates,
-               "kept": record.kept, "dropped": record.result.dropped, "pruned": record.result.pruned,
-               "iterations": len(history), "loss": record.loss, "reinitialized": reinitialized,
-               "bank_added": watched,
-               "best_loss_per_iteration": [float(np.min(h["loss"])) for h in history]}
-        if history and "error_deg" in history[0]:
-            row["best_error_deg_per_iteration"] = [float(np.min(h["error_deg"])) for h in history]
-            row["error_of_best_loss_per_iteration"] = [float(h["error_deg"][np.argmin(h["loss"])]) for h in history]
-        return row
+        errors = bool(history) and history[0].error_deg is not None
+        return StepRow(
+            index=index, frame=frame, step=step, wall_time_s=wall, candidates=record.candidates, kept=record.kept,
+            dropped=record.result.dropped, pruned=record.result.pruned, iterations=len(history), loss=record.loss,
+            reinitialized=reinitialized, bank_added=watched,
+            best_loss_per_iteration=[float(np.min(h.loss)) for h in history],
+            best_error_deg_per_iteration=[float(np.min(h.error_deg)) for h in history] if errors else None,
+            error_of_best_loss_per_iteration=[float(h.error_deg[np.argmin(h.loss)]) for h in history]
+            if errors else None)
 
     def _frame_row(self, loaded: LoadedModel, record: StepRecord, sequence: Sequence, k: int, wall: float,
-                   elapsed: float, object_found: bool, reinitialized: bool, bank_added: int) -> dict:
+                   elapsed: float, object_found: bool, reinitialized: bool, bank_added: int) -> FrameResult:
         estimate_model = record.estimate.double().numpy()
         q, r = dataset_pose_to_label(loaded.model_to_dataset(estimate_model))
-        row = {"index": k, "frame": self._frame_number(k), "name": sequence.frames[k].name,
-               "steps": self.config.steps_per_frame, "wall_time_s": wall, "elapsed_s": elapsed, "q": q, "r": r,
-               "c2w_model": estimate_model.tolist(), "loss": record.loss, "candidates": record.candidates,
-               "dropped": len(record.result.dropped), "object_found": object_found, "reinitialized": reinitialized,
-               "bank_added": bank_added,
-               "rotation_deg": None, "translation_m": None,
-               "translation_rel": None, "score": None}
+        row = FrameResult(index=k, frame=self._frame_number(k), name=sequence.frames[k].name,
+                          steps=self.config.steps_per_frame, wall_time_s=wall, elapsed_s=elapsed, q=q, r=r,
+                          c2w_model=estimate_model.tolist(), loss=record.loss, candidates=record.candidates,
+                          dropped=len(record.result.dropped), object_found=object_found, reinitialized=reinitialized,
+                          bank_added=bank_added)
         truth = sequence.frames[k].c2w_true
         if truth is not None:
             q_true, r_true = dataset_pose_to_label(truth)
             error = label_error(np.array(q), np.array(r), np.array(q_true), np.array(r_true),
                                 hil="lightbox" in str(self.config.sequence))
-            row |= {"rotation_deg": error.rotation_deg, "translation_m": error.translation_m,
-                    "translation_rel": error.translation_rel, "score": error.score}
+            row = dataclasses.replace(row, rotation_deg=error.rotation_deg, translation_m=error.translation_m,
+                                      translation_rel=error.translation_rel, score=error.score)
         return row
 
-    def summary(self, rows: list[dict], total_frames: int, loaded: LoadedModel, sequence: Sequence,
-                initializer: Initializer | None = None) -> dict:
-        out = {"run": str(self.folder.path), "model": str(self.config.load_config), "model_step": loaded.step,
-               "sequence": str(self.config.sequence), "sequence_format": sequence.kind,
-               "frames_total": total_frames, "complete": len(rows) == total_frames,
-               "device": str(loaded.device), "starts": self.config.starts.source,
-               "frames_without_object": sum(not r.get("object_found", True) for r in rows),
-               "frames_reinitialized": sum(bool(r.get("reinitialized")) for r in rows)}
-        if loaded.target_sphere is not None:
-            out["target_radius_m"] = float(loaded.target_sphere[1]) / loaded.dataparser_scale
+    def summary(self, rows: list[FrameResult], total_frames: int, loaded: LoadedModel, sequence: Sequence,
+                initializer: Initializer | None = None) -> RunSummary:
+        bank = None
         if initializer is not None:
-            out["bank"] = {"views": self.config.bank.views, "entries": len(initializer.entries.views),
-                           "built_in_this_run": initializer.built, "render_s": initializer.build_s,
-                           "cache": str(initializer.cache)}
-        return out | summarize(rows)
+            bank = BankSummary(views=self.config.bank.views, entries=len(initializer.entries.views),
+                               built_in_this_run=initializer.built, render_s=initializer.build_s,
+                               cache=str(initializer.cache))
+        return dataclasses.replace(
+            summarize(rows), run=str(self.folder.path), model=str(self.config.load_config), model_step=loaded.step,
+            sequence=str(self.config.sequence), sequence_format=sequence.kind, frames_total=total_frames,
+            complete=len(rows) == total_frames, device=str(loaded.device), starts=self.config.starts.source,
+            frames_without_object=sum(not r.object_found for r in rows),
+            frames_reinitialized=sum(bool(r.reinitialized) for r in rows),
+            target_radius_m=None if loaded.target_sphere is None else
+            float(loaded.target_sphere[1]) / loaded.dataparser_scale,
+            bank=bank)

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from nerfinv_plugin.geometry.se3 import exp_se3, log_se3, perturb_about
-from nerfinv_plugin.inversion.optimizer import OptimizerConfig, StepResult, optimize_candidates
+from nerfinv_plugin.inversion.optimizer import IterationRecord, OptimizerConfig, StepResult, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler, Strategy
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import Intrinsics
@@ -146,7 +146,7 @@ class Tracker:
                             torch.Generator().manual_seed(seed))
 
     def step(self, state: TrackerState, frame: Frame, frame_index: int,
-             on_iteration: Callable[[int, dict], None] | None = None) -> StepRecord:
+             on_iteration: Callable[[int, IterationRecord], None] | None = None) -> StepRecord:
         """One Monte Carlo step against ``frame``: optimize, rank, keep, spawn. Updates ``state`` for the
         next step. Consecutive steps on the same frame are elitist: a step that finds nothing better keeps
         the previous estimate, so the best loss of a frame never increases."""

@@ -6,7 +6,6 @@ are; when either is gone the rest is still written, and the page says what is mi
 that needs ground truth is left out (never drawn empty) on a sequence without it.
 """
 
-import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -22,8 +21,10 @@ from nerfinv_plugin.model.loading import Device, load_model
 from nerfinv_plugin.model.render import Intrinsics, render_image
 from nerfinv_plugin.report import figures
 from nerfinv_plugin.report.html import Page, Part, render
-from nerfinv_plugin.report.results import CONFIG, RESULTS_JSONL, STEPS_JSONL, SUMMARY, RunFolder, write_atomic
-from nerfinv_plugin.report.summary import summarize
+from nerfinv_plugin.results.atomic import write_atomic
+from nerfinv_plugin.results.folder import CONFIG, RESULTS_JSONL, RunFolder
+from nerfinv_plugin.results.records import FrameResult, RunSummary, StepRow
+from nerfinv_plugin.results.summary import summarize
 
 REPORT_DIR = "report"
 REPORT_HTML = "report.html"
@@ -76,9 +77,9 @@ class Run:
     """What a run folder holds, read once."""
 
     path: Path
-    rows: list[dict]
-    steps: list[dict]
-    summary: dict
+    rows: list[FrameResult]
+    steps: list[StepRow]
+    summary: RunSummary
     """``summarize(rows)`` over the rows now, with summary.json's fields about the run (total frames,
     model step, device) where the run wrote it."""
     settings: str
@@ -104,35 +105,24 @@ class Renderer:
                                  config.camera)
         return cls(loaded, sequence.frames, sequence.intrinsics)
 
-    def view(self, row: dict) -> figures.View:
+    def view(self, row: FrameResult) -> figures.View:
         """Checks that the frame on disk is still the one the run saw: an estimate over another image
         would look like a failure of the method."""
-        k = row["index"]
+        k = row.index
         if k not in self.cache:
-            if k >= len(self.frames) or self.frames[k].name != row["name"]:
+            if k >= len(self.frames) or self.frames[k].name != row.name:
                 found = self.frames[k].name if k < len(self.frames) else "missing"
-                raise SequenceError(f"frame {row['frame']} of the sequence is now {found}, but the run used "
-                                    f"{row['name']}: the data changed since the run")
-            rendered = render_image(self.loaded, np.asarray(row["c2w_model"]), self.intrinsics)
+                raise SequenceError(f"frame {row.frame} of the sequence is now {found}, but the run used "
+                                    f"{row.name}: the data changed since the run")
+            rendered = render_image(self.loaded, np.asarray(row.c2w_model), self.intrinsics)
             self.cache[k] = figures.View(_label(row), self.frames[k].image / 255.0, rendered)
         return self.cache[k]
 
 
-def _label(row: dict) -> str:
-    if row.get("rotation_deg") is None:
-        return f"frame {row['frame']}"
-    return f"frame {row['frame']}\n{row['rotation_deg']:.1f}°, {row['translation_m']:.2f} m"
-
-
-def _jsonl(path: Path) -> list[dict]:
-    return [json.loads(line) for line in path.read_text().splitlines() if line] if path.is_file() else []
-
-
-def _stored_summary(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}  # not written yet (a run going on or interrupted), or cut short
+def _label(row: FrameResult) -> str:
+    if row.rotation_deg is None:
+        return f"frame {row.frame}"
+    return f"frame {row.frame}\n{row.rotation_deg:.1f}°, {row.translation_m:.2f} m"
 
 
 def read_run(run_dir: Path) -> Run:
@@ -140,9 +130,11 @@ def read_run(run_dir: Path) -> Run:
     if not (path / RESULTS_JSONL).is_file():
         raise ReportError(f"{path} is not an ns-invert run folder (no {RESULTS_JSONL}); give the folder "
                           "ns-invert printed after 'results:' (outputs/<name>/nerfinv/<timestamp>)")
-    rows = RunFolder(path).rows()
-    summary = _stored_summary(path / SUMMARY) | summarize(rows)
-    return Run(path, rows, _jsonl(path / STEPS_JSONL), summary, *_settings(path / CONFIG))
+    folder = RunFolder(path)
+    rows = folder.rows()
+    stored = folder.summary()  # None while the run is going on or after it was interrupted
+    summary = summarize(rows) if stored is None else stored.updated(summarize(rows))
+    return Run(path, rows, folder.steps(), summary, *_settings(path / CONFIG))
 
 
 def _settings(path: Path) -> tuple[str, InvertConfig | None, str]:
@@ -158,14 +150,14 @@ def _settings(path: Path) -> tuple[str, InvertConfig | None, str]:
         return text, None, str(err)
 
 
-def _positions(rows: list[dict], frames: Sequence[int] | None) -> list[int]:
+def _positions(rows: list[FrameResult], frames: Sequence[int] | None) -> list[int]:
     """Positions in ``rows`` of the frames (sequence frame numbers) to overlay."""
     if frames is None:
         return figures.evenly_spaced(len(rows), OVERLAY_FRAMES)
-    where = {r["frame"]: i for i, r in enumerate(rows)}
+    where = {r.frame: i for i, r in enumerate(rows)}
     unknown = [f for f in frames if f not in where]
     if unknown:
-        done = f"{rows[0]['frame']}..{rows[-1]['frame']}" if rows else "none yet"
+        done = f"{rows[0].frame}..{rows[-1].frame}" if rows else "none yet"
         raise ReportError(f"frame(s) {', '.join(map(str, unknown))} not in this run (frames done: {done}); "
                           "give frame numbers from results.jsonl's 'frame'")
     return [where[f] for f in frames]
@@ -226,11 +218,11 @@ def _meta(run: Run) -> list[tuple[str, str]]:
     s, c = run.summary, run.config
     lines = [("run folder", str(run.path))]
     if c is not None:
-        step = f" (step {s['model_step']})" if "model_step" in s else ""
+        step = "" if s.model_step is None else f" (step {s.model_step})"
         frames = f"frames {c.start}:{'' if c.stop is None else c.stop}:{c.stride}"
         lines += [("model", f"{c.load_config}{step}"), ("sequence", f"{c.sequence}, {frames}")]
-    if "device" in s:
-        lines.append(("device", s["device"]))
+    if s.device is not None:
+        lines.append(("device", s.device))
     lines.append(("report written", datetime.now().strftime("%Y-%m-%d %H:%M:%S")))
     return lines
 

@@ -5,7 +5,7 @@ Figures are built on matplotlib's object API with an Agg canvas rather than pypl
 state to leak between reports, no display needed, nothing to close afterwards.
 """
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,7 +14,8 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from nerfinv_plugin.report.summary import SUCCESS_DEG
+from nerfinv_plugin.results.records import FrameResult, StepRow
+from nerfinv_plugin.results.summary import SUCCESS_DEG
 
 DPI = 120
 THRESHOLD_COLOURS = ("tab:green", "goldenrod", "tab:red")
@@ -62,20 +63,20 @@ def evenly_spaced(count: int, wanted: int) -> list[int]:
     return sorted({int(i) for i in np.linspace(0, count - 1, min(count, wanted)).round()})
 
 
-def step_points(rows: list[dict], steps: list[dict]) -> StepPoints:
+def step_points(rows: list[FrameResult], steps: list[StepRow]) -> StepPoints:
     """A step that ends a frame takes the frame's error from ``rows`` (the error of the pose reported for
     it); any other step, that of its lowest-loss candidate after its last iteration. Steps without a
     known error are left out, but their time still counts."""
-    last_step = {s["index"]: s["step"] for s in steps}
-    by_index = {r["index"]: r for r in rows}
-    clock = np.cumsum([s["wall_time_s"] for s in steps])
+    last_step = {s.index: s.step for s in steps}
+    by_index = {r.index: r for r in rows}
+    clock = np.cumsum([s.wall_time_s for s in steps])
     points = []
     for step, time_s in zip(steps, clock):
-        row = by_index.get(step["index"]) if last_step[step["index"]] == step["step"] else None
-        history = step.get("error_of_best_loss_per_iteration") or [None]
-        error = row["rotation_deg"] if row is not None else history[-1]
+        row = by_index.get(step.index) if last_step[step.index] == step.step else None
+        history = step.error_of_best_loss_per_iteration or [None]
+        error = row.rotation_deg if row is not None else history[-1]
         if error is not None:
-            points.append((time_s, error, row is not None, step["candidates"]))
+            points.append((time_s, error, row is not None, step.candidates))
     time_s, error, ends, candidates = zip(*points) if points else ((), (), (), ())
     return StepPoints(np.array(time_s, float), np.array(error, float), np.array(ends, bool),
                       np.array(candidates, int))
@@ -119,7 +120,7 @@ def _label_candidates(ax: Axes, points: StepPoints) -> None:
                     fontsize=8, color="0.3")
 
 
-def error_vs_time(rows: list[dict], steps: list[dict]) -> Figure | None:
+def error_vs_time(rows: list[FrameResult], steps: list[StepRow]) -> Figure | None:
     """Thesis fig. 5.2: one marker per Monte Carlo step. The spacing of the markers shows how much a step
     costs, which shrinks as fewer candidates survive; the candidate count is written where it changes."""
     points = step_points(rows, steps)
@@ -144,20 +145,20 @@ def error_vs_time(rows: list[dict], steps: list[dict]) -> Figure | None:
     return figure
 
 
-def _concatenated(steps: list[dict], key: str) -> np.ndarray:
+def _concatenated(steps: list[StepRow], history: Callable[[StepRow], list[float] | None]) -> np.ndarray:
     """A per-iteration history over all steps; NaN where a step has none (frames without truth)."""
-    return np.concatenate([np.asarray(s.get(key) or np.full(len(s["best_loss_per_iteration"]), np.nan), float)
+    return np.concatenate([np.asarray(history(s) or np.full(len(s.best_loss_per_iteration), np.nan), float)
                            for s in steps])
 
 
-def loss_and_error_per_iteration(steps: list[dict]) -> Figure | None:
+def loss_and_error_per_iteration(steps: list[StepRow]) -> Figure | None:
     """Thesis fig. 5.3 over a whole run: the best loss at every iteration and, with ground truth, the
     error. Step boundaries are where resampling happens (and the learning rate resets)."""
-    loss = _concatenated(steps, "best_loss_per_iteration") if steps else np.array([])
+    loss = _concatenated(steps, lambda s: s.best_loss_per_iteration) if steps else np.array([])
     if not loss.size:
         return None
-    best_error = _concatenated(steps, "best_error_deg_per_iteration")
-    chosen_error = _concatenated(steps, "error_of_best_loss_per_iteration")
+    best_error = _concatenated(steps, lambda s: s.best_error_deg_per_iteration)
+    chosen_error = _concatenated(steps, lambda s: s.error_of_best_loss_per_iteration)
     with_error = bool(np.isfinite(chosen_error).any())
     figure, axes = _figure(10.0, 6.0 if with_error else 3.6, rows=2 if with_error else 1, sharex=True)
     iteration = np.arange(1, loss.size + 1)
@@ -171,7 +172,7 @@ def loss_and_error_per_iteration(steps: list[dict]) -> Figure | None:
         _log_if_wide(axes[1], np.concatenate([chosen_error, best_error]))
         _thresholds(axes[1])
         axes[1].set(ylabel="rotation error (deg)")
-    boundaries = np.cumsum([len(s["best_loss_per_iteration"]) for s in steps])[:-1] + 0.5
+    boundaries = np.cumsum([len(s.best_loss_per_iteration) for s in steps])[:-1] + 0.5
     for ax in axes:
         for k, x in enumerate(boundaries):
             ax.axvline(x, color="0.55", lw=0.7, alpha=0.6, label="Monte Carlo step boundary" if k == 0 else None)
@@ -180,14 +181,14 @@ def loss_and_error_per_iteration(steps: list[dict]) -> Figure | None:
     return figure
 
 
-def per_frame_errors(rows: list[dict]) -> Figure | None:
+def per_frame_errors(rows: list[FrameResult]) -> Figure | None:
     """The error of the pose reported for each frame: whether tracking holds, and where it is lost."""
-    truth = [r for r in rows if r.get("rotation_deg") is not None]
+    truth = [r for r in rows if r.rotation_deg is not None]
     if not truth:
         return None
-    frame = np.array([r["frame"] for r in truth])
-    rotation = np.array([r["rotation_deg"] for r in truth], float)
-    translation = np.array([r["translation_m"] for r in truth], float)
+    frame = np.array([r.frame for r in truth])
+    rotation = np.array([r.rotation_deg for r in truth], float)
+    translation = np.array([r.translation_m for r in truth], float)
     figure, (top, bottom) = _figure(9.5, 5.5, rows=2, sharex=True)
     top.plot(frame, rotation, "o-", color="tab:blue", ms=4, lw=1.2, label="rotation error")
     _log_if_wide(top, rotation)

@@ -5,7 +5,8 @@ import html
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from nerfinv_plugin.report.summary import SUCCESS_DEG, SUCCESS_REL, rotation_key, translation_key
+from nerfinv_plugin.results.records import FrameResult, RunSummary
+from nerfinv_plugin.results.summary import SUCCESS_DEG, SUCCESS_REL, rotation_key, translation_key
 
 MISSING = "–"
 """What a cell shows when the value does not exist (no ground truth, not recorded)."""
@@ -45,9 +46,9 @@ class Page:
     title: str
     meta: list[tuple[str, str]]
     """(label, value) lines under the title: run folder, model, sequence, ..."""
-    summary: dict
+    summary: RunSummary
     """``summarize(rows)``, with ``frames_total`` and ``complete`` where the run wrote them."""
-    rows: list[dict]
+    rows: list[FrameResult]
     parts: list[Part]
     settings: str
     """config.yml as written, or a sentence saying why it is not shown."""
@@ -76,60 +77,61 @@ def _table(header: Iterable[str], body: Iterable[Iterable[str]], text_columns: i
     return f"<table><thead><tr>{cells('th', header)}</tr></thead><tbody>{rows}</tbody></table>"
 
 
-def _frames_line(summary: dict) -> str:
-    done = summary["frames_done"]
-    if "frames_total" not in summary:
+def _frames_line(summary: RunSummary) -> str:
+    done = summary.frames_done
+    if summary.frames_total is None:
         return f"{done} (summary.json not written yet: the run is going on or was interrupted)"
-    state = "complete" if summary.get("complete") else "not finished: continue it with ns-invert --resume"
-    return f"{done} of {summary['frames_total']} ({state})"
+    state = "complete" if summary.complete else "not finished: continue it with ns-invert --resume"
+    return f"{done} of {summary.frames_total} ({state})"
 
 
-def run_table(summary: dict) -> str:
-    lines = [("frames", _frames_line(summary)),
-             ("frames with ground truth", str(summary.get("frames_with_truth", 0)))]
-    if "wall_time_s" in summary:
-        lines += [("time per frame (s, mean)", _number(summary["mean_time_per_frame_s"], 1)),
-                  ("time in all (s)", _number(summary["wall_time_s"], 0)),
-                  ("loss of the last frame", _number(summary["final_loss"], 5))]
+def run_table(summary: RunSummary) -> str:
+    truth = 0 if summary.frames_with_truth is None else summary.frames_with_truth
+    lines = [("frames", _frames_line(summary)), ("frames with ground truth", str(truth))]
+    if summary.wall_time_s is not None:
+        lines += [("time per frame (s, mean)", _number(summary.mean_time_per_frame_s, 1)),
+                  ("time in all (s)", _number(summary.wall_time_s, 0)),
+                  ("loss of the last frame", _number(summary.final_loss, 5))]
     return _table(("run", ""), ((_e(k), _e(v)) for k, v in lines), text_columns=2)
 
 
 ERRORS = (("rotation error (deg)", "rotation_deg", 1, 2), ("translation error (m)", "translation_m", 1, 3),
           ("translation error (% of range)", "translation_rel", 100, 2),
           ("SPEC2021 score (rad + relative translation)", "score", 1, 4))
-"""Rows of the error table: label, summary key, scale, decimals."""
+"""Rows of the error table: label, :class:`RunSummary` field, scale, decimals."""
 STATISTICS = ("mean", "median", "max", "final")
+"""Columns of the error table: fields of :class:`ErrorStatistics`."""
 
 
-def errors_table(summary: dict) -> str:
-    body = [(_e(label), *(_number(summary[key][s] * scale, digits) for s in STATISTICS))
-            for label, key, scale, digits in ERRORS]
+def errors_table(summary: RunSummary) -> str:
+    body = [(_e(label), *(_number(getattr(getattr(summary, name), s) * scale, digits) for s in STATISTICS))
+            for label, name, scale, digits in ERRORS]
     return _table(("error over the frames with ground truth", *STATISTICS), body)
 
 
-def success_table(summary: dict) -> str:
-    total = summary["frames_with_truth"]
-    body = [(_e(f"rotation error under {t:g}°"), _percent(summary["success_rotation"][rotation_key(t)], total))
+def success_table(summary: RunSummary) -> str:
+    total = summary.frames_with_truth
+    body = [(_e(f"rotation error under {t:g}°"), _percent(summary.success_rotation[rotation_key(t)], total))
             for t in SUCCESS_DEG]
     body += [(_e(f"translation error under {100 * t:g}% of range"),
-              _percent(summary["success_translation"][translation_key(t)], total)) for t in SUCCESS_REL]
+              _percent(summary.success_translation[translation_key(t)], total)) for t in SUCCESS_REL]
     return _table(("success", "frames"), body)
 
 
-def summary_tables(summary: dict) -> str:
-    if "rotation_deg" not in summary:
+def summary_tables(summary: RunSummary) -> str:
+    if summary.rotation_deg is None:
         return run_table(summary) + ('<p class="missing">No ground truth for these frames: errors and success '
                                      "rates cannot be computed.</p>")
     return run_table(summary) + errors_table(summary) + success_table(summary)
 
 
-def frames_table(rows: list[dict]) -> str:
+def frames_table(rows: list[FrameResult]) -> str:
     header = ("frame", "image", "rotation (deg)", "translation (m)", "translation (% of range)", "SPEC score",
               "loss", "candidates", "dropped", "time (s)")
-    body = [(str(r["frame"]), _e(r["name"]), _number(r["rotation_deg"]), _number(r["translation_m"], 3),
-             MISSING if r["translation_rel"] is None else _number(100 * r["translation_rel"]),
-             _number(r["score"], 4), _number(r["loss"], 5), str(r["candidates"]), str(r["dropped"]),
-             _number(r["wall_time_s"], 1)) for r in rows]
+    body = [(str(r.frame), _e(r.name), _number(r.rotation_deg), _number(r.translation_m, 3),
+             MISSING if r.translation_rel is None else _number(100 * r.translation_rel),
+             _number(r.score, 4), _number(r.loss, 5), str(r.candidates), str(r.dropped),
+             _number(r.wall_time_s, 1)) for r in rows]
     return f'<div class="scroll">{_table(header, body, text_columns=2)}</div>'
 
 

@@ -10,6 +10,7 @@ Images are RGB JPEG over black, as a camera records them; with ``distortion`` th
 SPEED+ lens model that camera.json then carries.
 """
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,13 +18,13 @@ import mitsuba as mi
 import numpy as np
 
 from nerfinv_plugin.geometry.frames import c2w_opencv_to_label
+from nerfinv_plugin.results.atomic import write_atomic
 from nerfinv_plugin.synth.datasets import (
     SPEEDPLUS_DIST_COEFFS,
     Progress,
     camera_json,
     speedplus_like_camera,
     write_image,
-    write_json_atomic,
 )
 from nerfinv_plugin.synth.render import PinholeCamera, distort_image, distortion_padding, render_view
 from nerfinv_plugin.synth.scenes import SCENE_CENTRES, SceneName, build_scene
@@ -66,7 +67,7 @@ def write_speedplus(out: Path, scene_name: SceneName, train: int, validation: in
     rng = np.random.default_rng(seed)
     poses = orbit_views(train + validation, range_m, range_jitter, SCENE_CENTRES[scene_name], rng)
     rng.shuffle(poses)
-    write_json_atomic(out / "camera.json", camera_json(camera, dist))
+    write_atomic(out / "camera.json", json.dumps(camera_json(camera, dist), indent=2))
     filenames, split_poses, start = {}, {}, 0
     for split, count in zip(SPLITS, (train, validation)):
         names = [f"img{start + k + 1:06d}.jpg" for k in range(count)]
@@ -76,8 +77,8 @@ def write_speedplus(out: Path, scene_name: SceneName, train: int, validation: in
                 rgb = distort_image(rgb, canvas, camera, dist)
             write_image(out / "synthetic" / "images" / name, rgb)
             step()
-        write_json_atomic(out / "synthetic" / f"{split}.json",
-                          [label_of(name, pose) for name, pose in zip(names, poses[start:start + count])])
+        labels = [label_of(name, pose) for name, pose in zip(names, poses[start:start + count])]
+        write_atomic(out / "synthetic" / f"{split}.json", json.dumps(labels, indent=2))
         filenames[split], split_poses[split] = names, poses[start:start + count]
         start += count
     return RenderedSpeedPlus(camera, dist, filenames, split_poses)
