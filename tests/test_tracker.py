@@ -11,9 +11,10 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from nerfinv_plugin.data.sequences import SequenceError
+from nerfinv_plugin.geometry.errors import rotation_error_deg
 from nerfinv_plugin.geometry.frames import label_to_c2w_opencv, opencv_to_opengl
 from nerfinv_plugin.geometry.se3 import exp_se3, geodesic_deg, log_se3
-from nerfinv_plugin.inversion.optimizer import OptimizerConfig, optimize_candidates
+from nerfinv_plugin.inversion.optimizer import OptimizerConfig, PreparedFrame, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.session import InversionError, shirt_label_pool
 from nerfinv_plugin.inversion.settings import InvertConfig, StartConfig
@@ -55,8 +56,7 @@ def toy_sequence(toy_run, tmp_path_factory):
     return loaded, frames, centre
 
 
-def _error(poses: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
-    return geodesic_deg(poses[:, :3, :3], truth[None, :3, :3].expand_as(poses[:, :3, :3]))
+_error = rotation_error_deg
 
 
 def _starts(truth: torch.Tensor, centre: torch.Tensor, count: int, scale: float, seed: int = 0) -> torch.Tensor:
@@ -180,9 +180,8 @@ def test_a_candidate_whose_loss_turns_nan_is_dropped_and_the_rest_go_on(toy_sequ
     frame = frames[0]
     sampler = PixelSampler("random", 64).prepare(frame.image)
     eval_pixels = torch.as_tensor(PixelSampler("random", 128).prepare(frame.image).sample(np.random.default_rng(0)))
-    observed = torch.as_tensor(frame.image, dtype=torch.float32) / 255.0
-    result = optimize_candidates(loaded, start, observed, frame.intrinsics, sampler, eval_pixels, centre,
-                                 OptimizerConfig(iterations=3), np.random.default_rng(0))
+    prepared = PreparedFrame.from_image(loaded, frame.image, frame.intrinsics, sampler, eval_pixels, centre)
+    result = optimize_candidates(loaded, start, prepared, OptimizerConfig(iterations=3), np.random.default_rng(0))
     assert result.dropped == [1]
     assert torch.isinf(result.losses[1]) and torch.isfinite(result.losses[[0, 2]]).all()
     assert torch.isfinite(result.c2w[[0, 2]]).all()
@@ -197,10 +196,9 @@ def test_pruning_stops_far_candidates_and_patience_ends_a_step_early(toy_sequenc
     start = torch.cat([near, far])
     sampler = PixelSampler("interest_region", 64).prepare(frame.image)
     eval_pixels = torch.as_tensor(PixelSampler("random", 128).prepare(frame.image).sample(np.random.default_rng(0)))
-    observed = torch.as_tensor(frame.image, dtype=torch.float32) / 255.0
+    prepared = PreparedFrame.from_image(loaded, frame.image, frame.intrinsics, sampler, eval_pixels, centre)
     config = OptimizerConfig(iterations=3, prune_every=2, prune_ratio=1.2)
-    result = optimize_candidates(loaded, start, observed, frame.intrinsics, sampler, eval_pixels, centre, config,
-                                 np.random.default_rng(0), min_candidates=2)
+    result = optimize_candidates(loaded, start, prepared, config, np.random.default_rng(0), min_candidates=2)
     # Pruned after the second iteration: every candidate above 1.2 x that iteration's best, but the best two.
     at_pruning = result.history[1].loss
     expected = {i for i in np.argsort(at_pruning)[2:] if at_pruning[i] > 1.2 * at_pruning.min()}
@@ -210,6 +208,5 @@ def test_pruning_stops_far_candidates_and_patience_ends_a_step_early(toy_sequenc
     assert np.isinf(result.history[2].loss[result.pruned]).all()  # no longer rendered
     # Patience: a demanded 90% improvement per iteration never comes, so the step ends after 1 + 2.
     patient = OptimizerConfig(iterations=20, patience=2, min_improvement=0.9)
-    short = optimize_candidates(loaded, near, observed, frame.intrinsics, sampler, eval_pixels, centre, patient,
-                                np.random.default_rng(0))
+    short = optimize_candidates(loaded, near, prepared, patient, np.random.default_rng(0))
     assert len(short.history) == 3 and torch.isfinite(short.losses).all()

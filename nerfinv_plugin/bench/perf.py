@@ -22,7 +22,7 @@ from torch import Tensor
 from nerfinv_plugin.bench.model_settings import Sampling, model_settings, sampled
 from nerfinv_plugin.bench.observed import ObservedFrame
 from nerfinv_plugin.geometry.se3 import exp_se3
-from nerfinv_plugin.inversion.optimizer import IterationRecord, OptimizerConfig, optimize_candidates
+from nerfinv_plugin.inversion.optimizer import IterationRecord, OptimizerConfig, PreparedFrame, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.model.fused_hash import stock_hash_encoding
 from nerfinv_plugin.model.gradients import keep_gradients
@@ -148,14 +148,13 @@ def our_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsics: 
     """One Monte Carlo step of our engine: keypoints once, all candidates batched, frozen weights. The
     iterations' pixels come from a generator seeded as :func:`thesis_loop`'s (the ranking pixels from
     another), so both loops draw the same pixels."""
-    observed = torch.as_tensor(image, dtype=torch.float32, device=loaded.device) / 255.0
     sampler = PixelSampler("interest_region", pixels).prepare(image)
     eval_pixels = torch.as_tensor(PixelSampler("random", 1024).prepare(image).sample(np.random.default_rng(seed + 1)))
+    frame = PreparedFrame.from_image(loaded, image, intrinsics, sampler, eval_pixels, centre)
     history: list[IterationRecord] = []
 
     def work() -> None:
-        history.extend(optimize_candidates(loaded, start, observed, intrinsics, sampler, eval_pixels, centre, config,
-                                           np.random.default_rng(seed)).history)
+        history.extend(optimize_candidates(loaded, start, frame, config, np.random.default_rng(seed)).history)
 
     seconds, peak = _timed(loaded.device, work)
     return Timing(seconds, len(history), start.shape[0] * pixels, peak, history[0].loss)

@@ -11,7 +11,7 @@ import torch
 
 from nerfinv_plugin.bench.model_settings import model_settings
 from nerfinv_plugin.data.sequences import Sequence, read_sequence
-from nerfinv_plugin.geometry.se3 import geodesic_deg
+from nerfinv_plugin.geometry.errors import rotation_error_deg
 from nerfinv_plugin.initialization.bank import BankConfig, bank_file
 from nerfinv_plugin.initialization.detect import find_object
 from nerfinv_plugin.initialization.initializer import Initializer
@@ -53,7 +53,7 @@ def bank_recall(loaded: LoadedModel, initializer: Initializer, sequence: Sequenc
         poses = initializer.poses(frame.image, detection, sequence.intrinsics, k)
         times.append(time.perf_counter() - tic)
         truth = torch.as_tensor(loaded.dataset_to_model(frame.c2w_true), dtype=torch.float32)
-        errors = geodesic_deg(poses[:, :3, :3], truth[None, :3, :3].expand(len(poses), 3, 3)).numpy()
+        errors = rotation_error_deg(poses, truth).numpy()
         hits1.append(errors[0] < threshold_deg)
         hitsk.append(errors.min() < threshold_deg)
         best.append(float(errors.min()))

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Literal, get_args
 
 from nerfinv_plugin.bench.observed import ObservedFrame
-from nerfinv_plugin.geometry.se3 import geodesic_deg
+from nerfinv_plugin.geometry.errors import rotation_error_deg
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.tracker import Frame, MonteCarloConfig, Tracker
 from nerfinv_plugin.model.loaded import LoadedModel
@@ -52,20 +52,19 @@ def screw_runs(loaded: LoadedModel, observed: ObservedFrame, candidates: int, it
     of the true range, optimized once about the target and once about the model frame's origin."""
     frame = Frame(observed.image, observed.intrinsics, observed.name, observed.truth)
     shift = shift_fraction * observed.range_m * loaded.dataparser_scale
-    truth = observed.truth[:3, :3]
+    truth = observed.truth
     runs = []
     for seed in seeds:
         start = observed.starts(candidates, min_deg, max_deg, shift, seed)
-        start_deg = float(geodesic_deg(start[:, :3, :3], truth.expand_as(start[:, :3, :3])).median())
+        start_deg = float(rotation_error_deg(start, truth).median())
         for origin in get_args(ScrewOrigin):
             tracker = Tracker(loaded, observed.centre, OptimizerConfig(iterations=iterations, screw_origin=origin),
                               MonteCarloConfig(), seed=seed)
             began = time.perf_counter()
             record = tracker.run([frame], start, steps=1)[0]
             seconds = time.perf_counter() - began
-            rotations = record.result.c2w[:, :3, :3]
-            runs.append(ScrewRun(origin, seed, start_deg, float(geodesic_deg(record.estimate[:3, :3], truth)),
-                                 float(geodesic_deg(rotations, truth.expand_as(rotations)).median()), seconds))
+            runs.append(ScrewRun(origin, seed, start_deg, float(rotation_error_deg(record.estimate, truth)),
+                                 float(rotation_error_deg(record.result.c2w, truth).median()), seconds))
     return runs
 
 

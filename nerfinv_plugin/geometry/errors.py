@@ -4,6 +4,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from nerfinv_plugin.geometry.frames import quat_wxyz_to_rotmat
 from nerfinv_plugin.geometry.se3 import geodesic_deg
@@ -12,6 +13,14 @@ HIL_ROTATION_THRESHOLD_DEG = 0.169
 """Below this rotation error the SPEC2021 score counts 0 on the lightbox and sunlamp domains."""
 HIL_TRANSLATION_THRESHOLD = 2.173e-3
 """Below this normalised translation error (m/m) the score counts 0 on lightbox and sunlamp."""
+
+
+def rotation_error_deg(c2w: Tensor, truth: Tensor) -> Tensor:
+    """Degrees between the attitudes of the poses ``c2w`` [..., 4, 4] and the true pose ``truth`` [4, 4]
+    (or one per pose, [..., 4, 4]). The same in the model and the dataset frame: they are one rotation
+    (and a scale) apart, and a scale turns no attitude."""
+    rotations = c2w[..., :3, :3]
+    return geodesic_deg(rotations, truth[..., :3, :3].to(rotations).expand_as(rotations))
 
 
 @dataclass(frozen=True)

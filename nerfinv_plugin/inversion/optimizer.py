@@ -7,6 +7,10 @@ thesis' plain ``exp([S] theta) T0`` about the model-frame origin). All candidate
 model in chunked batches; each chunk's loss is back-propagated before the next is rendered, and the
 accumulated pose gradient is pushed into ``theta`` once per iteration. Adam, exponentially decaying
 learning rate.
+
+A step is a :class:`PreparedFrame` (what the observed frame gives every iteration: its colours, camera,
+pixel sampler, ranking pixels and target centre) and a :class:`CandidateStep` (the state the iterations
+advance); :func:`optimize_candidates` runs one over the other.
 """
 
 from collections.abc import Callable
@@ -105,83 +109,141 @@ def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, p
     return totals
 
 
-def optimize_candidates(loaded: LoadedModel, start: Tensor, observed: Tensor, intrinsics: Intrinsics,
-                        sampler: PixelSampler, eval_pixels: Tensor, centre: Tensor, config: OptimizerConfig,
-                        rng: np.random.Generator,
-                        error_fn: Callable[[Tensor], Tensor] | None = None,
-                        on_iteration: Callable[[int, IterationRecord], None] | None = None,
-                        min_candidates: int = 1) -> StepResult:
-    """Optimize candidates ``start`` [N, 4, 4] against ``observed`` [H, W, 3] (float in [0, 1]).
+@dataclass(frozen=True)
+class PreparedFrame:
+    """One observed frame made ready for a step: what every iteration and the final ranking read. Built
+    once per step by :meth:`from_image`; the iterations only draw pixels from it."""
 
-    ``sampler`` must be prepared on the observed image; it draws fresh pixels each iteration, shared by all
-    candidates. Final losses are measured on ``eval_pixels`` [E, 2], fixed for the frame, so candidates
-    (and steps) are ranked on the same pixels. ``error_fn`` maps poses [N, 4, 4] to errors in degrees,
-    recorded in the history when the truth is known. ``on_iteration(i, record)`` sees each iteration's
-    history record as it is made (progress bars). Pruning never leaves fewer than ``min_candidates``.
-    """
-    device = loaded.device
-    start = start.to(device, torch.float32)
-    n = start.shape[0]
-    theta = torch.zeros(n, 6, device=device, requires_grad=True)
-    to_c, from_c = _centred(centre.to(device, torch.float32)) if config.screw_origin == "target" else \
-        (torch.eye(4, device=device), torch.eye(4, device=device))
-    optimizer = torch.optim.Adam([theta], lr=config.lr)
-    gamma = config.lr_decay ** (1.0 / config.lr_decay_iterations)
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
-    alive = torch.ones(n, dtype=torch.bool, device=device)
-    """Not dropped for a non-finite pose, loss or gradient."""
-    active = alive.clone()
-    """Alive and not pruned: still rendered and optimized."""
-    history = []
-    best_seen, stalled = float("inf"), 0
+    observed: Tensor
+    """[H, W, 3] float32 in [0, 1] on the model's device."""
+    intrinsics: Intrinsics
+    sampler: PixelSampler
+    """Prepared on the observed image; draws fresh pixels each iteration, shared by all candidates."""
+    eval_pixels: Tensor
+    """[E, 2] (row, col), fixed for the frame, so that candidates (and steps) are ranked on the same pixels."""
+    centre: Tensor
+    """[3] target centre in the model frame, on the model's device: screw motions turn about it."""
+    error_fn: Callable[[Tensor], Tensor] | None = None
+    """Poses [N, 4, 4] to rotation errors in degrees [N], recorded in the history when the truth is known."""
 
-    def poses() -> Tensor:
-        return to_c @ exp_se3(theta) @ from_c @ start
+    @classmethod
+    def from_image(cls, loaded: LoadedModel, image: np.ndarray | Tensor, intrinsics: Intrinsics,
+                   sampler: PixelSampler, eval_pixels: Tensor, centre: Tensor,
+                   error_fn: Callable[[Tensor], Tensor] | None = None) -> "PreparedFrame":
+        """From the observed ``image`` [H, W, 3] ``uint8`` RGB."""
+        observed = torch.as_tensor(image, dtype=torch.float32, device=loaded.device) / 255.0
+        return cls(observed, intrinsics, sampler, torch.as_tensor(eval_pixels).to(loaded.device),
+                   centre.to(loaded.device, torch.float32), error_fn)
 
-    for iteration in range(config.iterations):
-        pixels = torch.as_tensor(sampler.sample(rng), device=device)
-        c2w = poses()
+    def colours(self, pixels: Tensor) -> Tensor:
+        """Observed colours [P, 3] at ``pixels`` [P, 2]."""
+        return self.observed[pixels[:, 0], pixels[:, 1]]
+
+
+class CandidateStep:
+    """The optimization of N candidates over one step, an iteration at a time: screw parameters ``theta``
+    [N, 6] on the start poses, Adam with its decaying learning rate, and which candidates go on."""
+
+    def __init__(self, loaded: LoadedModel, start: Tensor, frame: PreparedFrame, config: OptimizerConfig,
+                 min_candidates: int = 1):
+        device = loaded.device
+        self.loaded, self.frame, self.config, self.min_candidates = loaded, frame, config, min_candidates
+        self.start = start.to(device, torch.float32)
+        n = self.start.shape[0]
+        self.theta = torch.zeros(n, 6, device=device, requires_grad=True)
+        if config.screw_origin == "target":
+            self.to_centre, self.from_centre = _centred(frame.centre.to(device, torch.float32))
+        else:
+            self.to_centre, self.from_centre = torch.eye(4, device=device), torch.eye(4, device=device)
+        self.optimizer = torch.optim.Adam([self.theta], lr=config.lr)
+        gamma = config.lr_decay ** (1.0 / config.lr_decay_iterations)
+        self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma=gamma)
+        self.alive = torch.ones(n, dtype=torch.bool, device=device)
+        """Not dropped for a non-finite pose, loss or gradient."""
+        self.active = self.alive.clone()
+        """Alive and not pruned: still rendered and optimized."""
+        self.history: list[IterationRecord] = []
+        self.stopped = False
+        """No candidate is left, or patience ran out: the step ends before its last iteration."""
+        self._best_seen, self._stalled = float("inf"), 0
+
+    def poses(self) -> Tensor:
+        """Current candidates [N, 4, 4]: ``C exp([S] theta) C^-1 T0``."""
+        return self.to_centre @ exp_se3(self.theta) @ self.from_centre @ self.start
+
+    def iterate(self, rng: np.random.Generator) -> IterationRecord:
+        """One iteration on fresh pixels drawn with ``rng``: render the active candidates, take an Adam
+        step, then drop, prune or stop. Returns the iteration's history record."""
+        device, config, active = self.loaded.device, self.config, self.active
+        pixels = torch.as_tensor(self.frame.sampler.sample(rng), device=device)
+        c2w = self.poses()
         rendered = torch.nonzero(active).flatten()
         leaf = c2w[rendered].detach().requires_grad_(True)
-        losses = torch.full((n,), torch.inf, device=device)
-        losses[rendered] = candidate_losses(loaded, leaf, intrinsics, pixels, observed[pixels[:, 0], pixels[:, 1]],
-                                            config.loss, backward=True)
+        losses = torch.full((c2w.shape[0],), torch.inf, device=device)
+        losses[rendered] = candidate_losses(self.loaded, leaf, self.frame.intrinsics, pixels,
+                                            self.frame.colours(pixels), config.loss, backward=True)
         grad = torch.zeros_like(c2w)
         grad[rendered] = leaf.grad
         # A pose, loss or gradient that is not finite ends the candidate. nerfstudio's renderer turns NaN
         # colours into 0 in eval mode, so a NaN pose alone would still get a finite loss.
         finite = torch.isfinite(losses) & torch.isfinite(c2w).flatten(1).all(1) & torch.isfinite(grad).flatten(1).all(1)
-        alive &= ~active | finite
-        active &= alive
-        optimizer.zero_grad(set_to_none=True)
+        self.alive &= ~active | finite
+        active &= self.alive
+        self.optimizer.zero_grad(set_to_none=True)
         c2w.backward(torch.where(active[:, None, None], grad, 0.0))
-        optimizer.step()
-        scheduler.step()
+        self.optimizer.step()
+        self.scheduler.step()
         losses = torch.where(active, losses, torch.inf)
-        record = IterationRecord(losses.cpu().numpy(),
-                                 None if error_fn is None else error_fn(c2w.detach()).cpu().numpy())
-        history.append(record)
+        error = None if self.frame.error_fn is None else self.frame.error_fn(c2w.detach()).cpu().numpy()
+        record = IterationRecord(losses.cpu().numpy(), error)
+        self.history.append(record)
+        self._after(losses)
+        return record
+
+    def _after(self, losses: Tensor) -> None:
+        """End the step when nothing is left; prune on schedule; count the iterations without progress."""
+        config = self.config
+        if not bool(self.active.any()):
+            self.stopped = True
+            return
+        if config.prune_every and len(self.history) % config.prune_every == 0:
+            self.active &= ~_far_above_best(losses, config.prune_ratio, self.min_candidates)
+        best = float(losses.min())
+        self._stalled = 0 if best < self._best_seen * (1.0 - config.min_improvement) else self._stalled + 1
+        self._best_seen = min(self._best_seen, best)
+        if config.patience is not None and self._stalled >= config.patience:
+            self.stopped = True
+
+    def result(self) -> StepResult:
+        """The final poses ranked on the frame's evaluation pixels."""
+        final = self.poses().detach()
+        losses = torch.full((final.shape[0],), torch.inf, device=self.loaded.device)
+        kept = torch.nonzero(self.active).flatten()
+        pixels = self.frame.eval_pixels
+        losses[kept] = candidate_losses(self.loaded, final[kept], self.frame.intrinsics, pixels,
+                                        self.frame.colours(pixels), self.config.loss, backward=False)
+        self.alive &= ~self.active | torch.isfinite(losses)
+        losses = torch.where(self.active & self.alive, losses, torch.inf)
+        dropped = torch.nonzero(~self.alive).flatten().tolist()
+        pruned = torch.nonzero(self.alive & ~self.active).flatten().tolist()
+        return StepResult(final, losses, self.history, dropped, pruned)
+
+
+def optimize_candidates(loaded: LoadedModel, start: Tensor, frame: PreparedFrame, config: OptimizerConfig,
+                        rng: np.random.Generator, on_iteration: Callable[[int, IterationRecord], None] | None = None,
+                        min_candidates: int = 1) -> StepResult:
+    """Optimize candidates ``start`` [N, 4, 4] against the prepared ``frame`` for at most
+    ``config.iterations`` iterations, drawing each iteration's pixels with ``rng``. ``on_iteration(i,
+    record)`` sees each iteration's history record as it is made (progress bars). Pruning never leaves
+    fewer than ``min_candidates``."""
+    step = CandidateStep(loaded, start, frame, config, min_candidates)
+    for iteration in range(config.iterations):
+        record = step.iterate(rng)
         if on_iteration is not None:
             on_iteration(iteration, record)
-        if not bool(active.any()):
+        if step.stopped:
             break
-        if config.prune_every and (iteration + 1) % config.prune_every == 0:
-            active &= ~_far_above_best(losses, config.prune_ratio, min_candidates)
-        best = float(losses.min())
-        stalled = 0 if best < best_seen * (1.0 - config.min_improvement) else stalled + 1
-        best_seen = min(best_seen, best)
-        if config.patience is not None and stalled >= config.patience:
-            break
-    final = poses().detach()
-    losses = torch.full((n,), torch.inf, device=device)
-    kept = torch.nonzero(active).flatten()
-    losses[kept] = candidate_losses(loaded, final[kept], intrinsics, eval_pixels.to(device),
-                                    observed[eval_pixels[:, 0], eval_pixels[:, 1]], config.loss, backward=False)
-    alive &= ~active | torch.isfinite(losses)
-    losses = torch.where(active & alive, losses, torch.inf)
-    dropped = torch.nonzero(~alive).flatten().tolist()
-    pruned = torch.nonzero(alive & ~active).flatten().tolist()
-    return StepResult(final, losses, history, dropped, pruned)
+    return step.result()
 
 
 def _far_above_best(losses: Tensor, ratio: float, keep: int) -> Tensor:

@@ -16,7 +16,13 @@ import torch
 from torch import Tensor
 
 from nerfinv_plugin.geometry.se3 import exp_se3, log_se3, perturb_about
-from nerfinv_plugin.inversion.optimizer import IterationRecord, OptimizerConfig, StepResult, optimize_candidates
+from nerfinv_plugin.inversion.optimizer import (
+    IterationRecord,
+    OptimizerConfig,
+    PreparedFrame,
+    StepResult,
+    optimize_candidates,
+)
 from nerfinv_plugin.inversion.sampling import PixelSampler, Strategy
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import Intrinsics
@@ -158,13 +164,13 @@ class Tracker:
         else:
             eval_pixels = torch.as_tensor(
                 PixelSampler("random", self.eval_pixels).prepare(frame.image, frame.rank_region).sample(state.rng))
-        observed = torch.as_tensor(frame.image, dtype=torch.float32, device=self.loaded.device) / 255.0
         optimizer = self.optimizer if mc.reset_lr or state.step == 0 else _decayed(self.optimizer, state.step)
         error_fn = None
         if self.error_fn is not None and frame.c2w_true is not None:
             error_fn = lambda poses, truth=frame.c2w_true: self.error_fn(poses, truth)  # noqa: E731
-        result = optimize_candidates(self.loaded, state.candidates, observed, frame.intrinsics, sampler,
-                                     eval_pixels, self.centre, optimizer, state.rng, error_fn, on_iteration,
+        prepared = PreparedFrame.from_image(self.loaded, frame.image, frame.intrinsics, sampler, eval_pixels,
+                                            self.centre, error_fn)
+        result = optimize_candidates(self.loaded, state.candidates, prepared, optimizer, state.rng, on_iteration,
                                      min_candidates=keep_count(mc, state.step, state.candidates.shape[0]))
         alive = int(torch.isfinite(result.losses).sum())
         if alive == 0:
