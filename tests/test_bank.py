@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from nerfinv_plugin.data.images import read_rgb_over_black
 from nerfinv_plugin.geometry.frames import OPENCV_TO_OPENGL
 from nerfinv_plugin.geometry.se3 import geodesic_deg
 from nerfinv_plugin.initialization.bank import (
@@ -26,7 +27,6 @@ from nerfinv_plugin.initialization.detect import find_object
 from nerfinv_plugin.initialization.extent import object_radius
 from nerfinv_plugin.inversion.session import bound_rays
 from nerfinv_plugin.inversion.settings import RenderConfig
-from nerfinv_plugin.model.evaluate import read_rgb_over_black
 from nerfinv_plugin.model.loading import load_model
 from nerfinv_plugin.model.render import Intrinsics, render_image
 from nerfinv_plugin.synth.scenes import SCENE_CENTRES

@@ -206,7 +206,8 @@ BAD_INPUTS = {
                                r"subset-count=7 but synthetic/train.json offers 6 labels"),
     "no subset list": (lambda root: {"subset_list": root / "nope.txt"}, "train", FileNotFoundError,
                        r"subset list .*nope.txt does not exist"),
-    "v1 label keys": (_v1_labels, "train", ValueError, r"label 0 lacks q_vbs2tango_true.*SPEED v1"),
+    "v1 label keys": (_v1_labels, "train", ValueError,
+                      r"label 0 in .*synthetic/train.json lacks 'q_vbs2tango_true'.*SPEED v1 label: rename"),
 }
 
 

@@ -15,8 +15,8 @@ Bad input raises :class:`SequenceError` with one line that says what is wrong an
 these paths come straight from a command line.
 """
 
-import json
-from collections.abc import Callable
+import contextlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -24,25 +24,39 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from nerfinv_plugin.geometry.frames import label_to_c2w_opencv, opencv_to_opengl
+from nerfinv_plugin.data.camera_and_labels import (
+    CameraFile,
+    DataFileError,
+    finite_array,
+    read_camera,
+    read_json,
+    read_label_poses,
+)
+from nerfinv_plugin.data.images import ImageError, read_rgb8
 from nerfinv_plugin.model.render import Intrinsics
 
 SequenceKind = Literal["shirt", "blender", "folder"]
 
 SHIRT_DOMAINS = ("synthetic", "lightbox")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-LABEL_KEYS = ("filename", "q_vbs2tango_true", "r_Vo2To_vbs_true")
 POSES_FILE = "poses.json"
 CAMERA_FILE = "camera.json"
 
 _LAYOUTS = ("a SHIRT trajectory <root>/roeN[/synthetic|/lightbox], a Blender split <scene>:<split> "
             "(for <scene>/transforms_<split>.json), or a folder of .png/.jpg images with camera.json")
-# cv2 accepts these numbers of distortion coefficients (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tx ty]]]]).
-_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
 class SequenceError(Exception):
     """Bad sequence input; the message is one line saying what is wrong and how to fix it."""
+
+
+@contextlib.contextmanager
+def _sequence_errors() -> Iterator[None]:
+    """A bad camera.json or label file is bad sequence input."""
+    try:
+        yield
+    except DataFileError as err:
+        raise SequenceError(str(err)) from err
 
 
 @dataclass
@@ -81,15 +95,7 @@ class _Entry:
     c2w_true: np.ndarray | None
 
 
-@dataclass(frozen=True)
-class _Camera:
-    """OpenCV camera matrix and distortion coefficients of the images on disk."""
-
-    matrix: np.ndarray
-    dist: np.ndarray
-
-
-CameraForSize = Callable[[Path, tuple[int, int]], _Camera]
+CameraForSize = Callable[[Path, tuple[int, int]], CameraFile]
 """The camera of a sequence given its first image and that image's (width, height): camera.json fixes the
 size and checks it; a Blender split's camera follows from the size."""
 
@@ -112,7 +118,8 @@ def read_sequence(spec: str | Path, start: int = 0, stop: int | None = None, str
     if resolution is not None and not (len(resolution) == 2 and all(int(v) == v > 0 for v in resolution)):
         raise SequenceError(f"invalid resolution {resolution} for {spec}; give (width, height) as two positive "
                             "integers, or none to keep the images' own size")
-    listing = _list_frames(spec, None if camera is None else Path(camera))
+    with _sequence_errors():
+        listing = _list_frames(spec, None if camera is None else Path(camera))
     if not listing.entries:
         raise SequenceError(f"{listing.index} lists no frames; point to a sequence with at least one image")
     selected = listing.entries[start:stop:stride]
@@ -132,8 +139,9 @@ def shirt_trajectory_poses(spec: str | Path) -> tuple[str, dict[str, np.ndarray]
     if not _is_shirt_trajectory(trajectory):
         raise SequenceError(f"{spec} is not a SHIRT trajectory (root/roeN with roeN/roeN.json); poses from SHIRT "
                             "labels need one: use another --starts.source for this sequence")
-    poses = {folder.name: np.array([c2w for _, c2w in _read_labels(folder / f"{folder.name}.json")])
-             for folder in sorted(trajectory.parent.iterdir()) if folder.is_dir() and _is_shirt_trajectory(folder)}
+    with _sequence_errors():
+        poses = {folder.name: np.array([c2w for _, c2w in read_label_poses(folder / f"{folder.name}.json")])
+                 for folder in sorted(trajectory.parent.iterdir()) if folder.is_dir() and _is_shirt_trajectory(folder)}
     return trajectory.name, poses
 
 
@@ -199,7 +207,7 @@ def _shirt(trajectory: Path, domain: str, camera: Path | None) -> _Listing:
         raise SequenceError(f"{images} does not exist; a SHIRT domain keeps its images in <root>/roeN/{domain}/"
                             "images (download or copy that domain)")
     labels_path = trajectory / f"{trajectory.name}.json"
-    poses = _read_labels(labels_path)
+    poses = read_label_poses(labels_path)
     entries = [_Entry(name, images / name, c2w) for name, c2w in poses]
     camera_file = _read_camera(_camera_path(camera, trajectory.parent, "the SHIRT root"))
     return _Listing("shirt", trajectory / domain, labels_path, entries, camera_file)
@@ -212,7 +220,7 @@ def _folder(folder: Path, camera: Path | None) -> _Listing:
     truth: dict[str, np.ndarray] = {}
     poses_path = folder / POSES_FILE
     if poses_path.is_file():
-        truth = dict(_read_labels(poses_path))
+        truth = dict(read_label_poses(poses_path))
         names = {p.name for p in files}
         unknown = sorted(set(truth) - names)
         if unknown:
@@ -233,7 +241,7 @@ def _blender(scene: Path, split: str) -> _Listing:
         found = _splits(scene)
         choice = f"splits here: {', '.join(found)}" if found else "there are no transforms_*.json files there"
         raise SequenceError(f"{path} does not exist; name an existing split after the colon ({choice})")
-    meta = _read_json(path)
+    meta = read_json(path)
     if not isinstance(meta, dict):
         raise SequenceError(f"{path} must hold an object with camera_angle_x and frames; fix or regenerate it")
     for key in ("camera_angle_x", "frames"):
@@ -252,15 +260,16 @@ def _blender(scene: Path, split: str) -> _Listing:
                 raise SequenceError(f"frame {i} in {path} has no {key!r}; every frame needs file_path and "
                                     "transform_matrix")
         image = _blender_image_path(scene, str(frame["file_path"]))
-        c2w = _array(frame["transform_matrix"], (4, 4), f"frame {i} in {path}: 'transform_matrix'", "a 4x4 matrix")
+        c2w = finite_array(frame["transform_matrix"], (4, 4), f"frame {i} in {path}: 'transform_matrix'",
+                           "a 4x4 matrix")
         entries.append(_Entry(image.name, image, c2w))
 
-    def camera(first: Path, size: tuple[int, int]) -> _Camera:
+    def camera(first: Path, size: tuple[int, int]) -> CameraFile:
         width, height = size
         focal = 0.5 * width / np.tan(0.5 * angle_x)
         # OpenCV's centre is half a pixel before nerfstudio's W / 2 (see Intrinsics).
         matrix = np.array([[focal, 0.0, width / 2 - 0.5], [0.0, focal, height / 2 - 0.5], [0.0, 0.0, 1.0]])
-        return _Camera(matrix, np.zeros(0))
+        return CameraFile(width, height, matrix, np.zeros(0))
 
     return _Listing("blender", path, path, entries, camera)
 
@@ -271,42 +280,6 @@ def _blender_image_path(scene: Path, file_path: str) -> Path:
     if Path(relative).suffix.lower() in IMAGE_SUFFIXES:
         return scene / relative
     return scene / f"{relative}.png"
-
-
-def _read_json(path: Path) -> object:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise SequenceError(f"cannot read {path} ({err}); fix or regenerate the file") from err
-
-
-def _array(value: object, shape: tuple[int, ...], where: str, expected: str) -> np.ndarray:
-    try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        array = np.empty(0)
-    if array.shape != shape or not np.all(np.isfinite(array)):
-        raise SequenceError(f"{where} must be {expected} of finite numbers, not {value!r}")
-    return array
-
-
-def _read_labels(path: Path) -> list[tuple[str, np.ndarray]]:
-    """SHIRT / SPEED+ labels as (filename, camera-to-body pose with OpenGL axes), in file order."""
-    labels = _read_json(path)
-    if not isinstance(labels, list):
-        raise SequenceError(f"{path} must hold a list of labels with {', '.join(LABEL_KEYS)}; fix or regenerate it")
-    poses = []
-    for i, label in enumerate(labels):
-        for key in LABEL_KEYS:
-            if not isinstance(label, dict) or key not in label:
-                raise SequenceError(f"label {i} in {path} has no {key!r}; every label needs filename, "
-                                    "q_vbs2tango_true (scalar-first) and r_Vo2To_vbs_true (metres)")
-        q = _array(label["q_vbs2tango_true"], (4,), f"label {i} in {path}: 'q_vbs2tango_true'", "a quaternion")
-        r = _array(label["r_Vo2To_vbs_true"], (3,), f"label {i} in {path}: 'r_Vo2To_vbs_true'", "a 3-vector")
-        if not np.any(q):
-            raise SequenceError(f"label {i} in {path}: 'q_vbs2tango_true' is all zeros; give a unit quaternion")
-        poses.append((str(label["filename"]), opencv_to_opengl(label_to_c2w_opencv(q, r))))
-    return poses
 
 
 def _camera_path(explicit: Path | None, folder: Path, where: str) -> Path:
@@ -323,30 +296,14 @@ def _camera_path(explicit: Path | None, folder: Path, where: str) -> Path:
 
 def _read_camera(path: Path) -> CameraForSize:
     """camera.json fixes the image size (Nu x Nv), so every image is checked against it."""
-    data = _read_json(path)
-    if not isinstance(data, dict):
-        raise SequenceError(f"{path} must hold an object with Nu, Nv, cameraMatrix and distCoeffs; fix it")
-    for key in ("Nu", "Nv", "cameraMatrix"):
-        if key not in data:
-            raise SequenceError(f"{path} has no {key!r}; a camera.json needs Nu, Nv, cameraMatrix (and distCoeffs)")
-    for key in ("Nu", "Nv"):
-        if not isinstance(data[key], int | float) or data[key] != int(data[key]) or data[key] <= 0:
-            raise SequenceError(f"{path}: {key!r} must be a positive whole number of pixels, not {data[key]!r}")
-    matrix = _array(data["cameraMatrix"], (3, 3), f"{path}: 'cameraMatrix'", "a 3x3 matrix")
-    try:
-        dist = np.asarray(data.get("distCoeffs", []), dtype=np.float64).ravel()
-    except (TypeError, ValueError):
-        dist = np.full(1, np.nan)
-    if dist.size not in _DIST_LENGTHS or not np.all(np.isfinite(dist)):
-        raise SequenceError(f"{path}: 'distCoeffs' must be 4, 5, 8, 12 or 14 numbers (OpenCV's k1 k2 p1 p2 ...), "
-                            f"not {data.get('distCoeffs')!r}")
-    expected = (int(data["Nu"]), int(data["Nv"]))
+    camera_file = read_camera(path)
+    expected = (camera_file.width, camera_file.height)
 
-    def camera(first: Path, size: tuple[int, int]) -> _Camera:
+    def camera(first: Path, size: tuple[int, int]) -> CameraFile:
         if size != expected:
             raise SequenceError(f"image {first} is {size[0]}x{size[1]} but {path} is for {expected[0]}x{expected[1]} "
                                 "(Nu x Nv); use the camera.json of these images (--camera) or images of that size")
-        return _Camera(matrix, dist)
+        return camera_file
 
     return camera
 
@@ -378,31 +335,16 @@ def _read_frame_image(listing: _Listing, entry: _Entry) -> np.ndarray:
     if not entry.path.is_file():
         raise SequenceError(f"image {entry.path} listed in {listing.index} does not exist; restore the file "
                             "or remove its entry")
-    return _read_rgb(entry.path)
+    try:
+        return read_rgb8(entry.path)
+    except ImageError as err:
+        raise SequenceError(f"{err}; replace it with a readable PNG or JPEG") from err
 
 
-def _undistorter(camera: _Camera, size: tuple[int, int]) -> Callable[[np.ndarray], np.ndarray] | None:
+def _undistorter(camera: CameraFile, size: tuple[int, int]) -> Callable[[np.ndarray], np.ndarray] | None:
     """``cv2.undistort`` with the same camera matrix, its map computed once per sequence instead of once per
     frame (the output is identical)."""
     if not np.any(camera.dist):
         return None
     map1, map2 = cv2.initUndistortRectifyMap(camera.matrix, camera.dist, None, camera.matrix, size, cv2.CV_16SC2)
     return lambda image: cv2.remap(image, map1, map2, cv2.INTER_LINEAR)
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    """``uint8`` RGB of any PNG / JPEG: grey becomes three equal channels, 16-bit is scaled down, and alpha
-    is composited over black, as the models render (like ``model.evaluate.read_rgb_over_black``)."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise SequenceError(f"cannot decode image {path}; replace it with a readable PNG or JPEG")
-    if image.ndim == 2:
-        image = image[..., None]
-    channels = image.shape[2]
-    rgb = np.repeat(image[..., :1], 3, axis=2) if channels <= 2 else image[..., 2::-1]
-    full = float(np.iinfo(image.dtype).max)
-    if channels in (2, 4):
-        rgb = rgb * (image[..., -1:] / full)
-    if rgb.dtype != np.uint8:
-        rgb = np.clip(np.round(rgb * (255.0 / full)), 0, 255).astype(np.uint8)
-    return np.ascontiguousarray(rgb)

@@ -9,7 +9,6 @@ nerfstudio imports this module for every ``ns-*`` command (entry point ``nerfstu
 so it imports nothing heavy and does no work at import time.
 """
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -22,14 +21,13 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.data.utils.dataparsers_utils import get_train_eval_split_interval
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
-from PIL import Image
 
-from nerfinv_plugin.geometry.frames import label_to_c2w_opencv, opencv_to_opengl
+from nerfinv_plugin.data import camera_and_labels
+from nerfinv_plugin.data.camera_and_labels import CameraFile, label_c2w_opengl
+from nerfinv_plugin.data.images import image_size
 
 Domain = Literal["synthetic", "lightbox", "sunlamp"]
 
-LABEL_KEYS = ("filename", "q_vbs2tango_true", "r_Vo2To_vbs_true")
-CAMERA_KEYS = ("Nu", "Nv", "cameraMatrix", "distCoeffs")
 SPLITS = ("train", "val", "test")
 
 
@@ -81,39 +79,28 @@ class SpeedPlusCamera:
 
 
 def read_camera(root: Path) -> SpeedPlusCamera:
-    """camera.json of a SPEED+ root; only 4 or 5 OpenCV coefficients, the ones nerfstudio can undistort."""
+    """camera.json of a SPEED+ root (:func:`camera_and_labels.read_camera`), with at most OpenCV's 5
+    coefficients, the ones nerfstudio can undistort."""
     path = root / "camera.json"
     if not path.is_file():
         raise FileNotFoundError(f"no camera.json in {root}: --data must be the SPEED+ root (the folder holding "
                                 f"camera.json, synthetic/, lightbox/, sunlamp/)")
-    camera = json.loads(path.read_text())
-    missing = [key for key in CAMERA_KEYS if key not in camera]
-    if missing:
-        raise ValueError(f"{path} lacks {', '.join(missing)}: SPEED+ camera.json files have {', '.join(CAMERA_KEYS)}")
-    matrix = np.asarray(camera["cameraMatrix"], dtype=np.float64)
-    dist = np.asarray(camera["distCoeffs"], dtype=np.float64).ravel()
-    if matrix.shape != (3, 3) or matrix[0, 1] != 0:
-        raise ValueError(f"{path}: cameraMatrix must be a 3x3 OpenCV matrix without skew, got {matrix.tolist()}")
-    if dist.size not in (4, 5):
-        raise ValueError(f"{path}: distCoeffs must be OpenCV's (k1, k2, p1, p2[, k3]), got {dist.size} values; "
-                         f"nerfstudio's perspective camera models no more")
-    return SpeedPlusCamera(int(camera["Nu"]), int(camera["Nv"]), matrix, np.pad(dist, (0, 5 - dist.size)))
+    camera: CameraFile = camera_and_labels.read_camera(path)
+    if camera.dist.size > 5:
+        raise ValueError(f"{path}: distCoeffs must be OpenCV's (k1, k2, p1, p2[, k3]), got {camera.dist.size} "
+                         f"values; nerfstudio's perspective camera models no more")
+    return SpeedPlusCamera(camera.width, camera.height, camera.matrix, np.pad(camera.dist, (0, 5 - camera.dist.size)))
 
 
 def read_labels(root: Path, relative: str) -> list[dict]:
-    """A label file checked for the keys every SPEED+ label has, so that a bad file fails here, naming the
-    label, instead of deep inside training."""
+    """A label file checked (:func:`camera_and_labels.read_labels`), so that a bad file fails here, naming
+    the label, instead of deep inside training."""
     path = root / relative
     if not path.is_file():
         raise FileNotFoundError(f"no label file {path}: a SPEED+ root holds {relative}; check --data and --domain")
-    labels = json.loads(path.read_text())
-    if not isinstance(labels, list) or not labels:
-        raise ValueError(f"{path} must be a non-empty JSON list of labels")
-    for index, label in enumerate(labels):
-        missing = [key for key in LABEL_KEYS if key not in label]
-        if missing:
-            raise ValueError(f"{path}: label {index} lacks {', '.join(missing)}; SPEED+ labels have "
-                             f"{', '.join(LABEL_KEYS)} (SPEED v1 files name the quaternion q_vbs2tango)")
+    labels = camera_and_labels.read_labels(path)
+    if not labels:
+        raise ValueError(f"{path} holds no label; a SPEED+ label file lists the labelled images")
     return labels
 
 
@@ -191,24 +178,13 @@ def image_paths(root: Path, domain: Domain, labels: list[dict], camera: SpeedPlu
         if not path.is_file():
             raise FileNotFoundError(f"image {path} listed in {source} does not exist; put the {domain} images "
                                     f"in {path.parent} or train on the ones you have with subset-list")
-        with Image.open(path) as image:
-            size = image.size
+        size = image_size(path)
         if size != (camera.width, camera.height):
             raise ValueError(f"image {path} is {size[0]}x{size[1]} but camera.json says Nu x Nv = "
                              f"{camera.width}x{camera.height}; use the original images (to train smaller, "
                              f"pass --pipeline.datamanager.camera-res-scale-factor)")
         paths.append(path)
     return paths
-
-
-def label_c2w_opengl(label: dict, source: str) -> np.ndarray:
-    """Camera-to-body pose, OpenGL camera axes, in metres."""
-    q = np.asarray(label["q_vbs2tango_true"], dtype=np.float64)
-    r = np.asarray(label["r_Vo2To_vbs_true"], dtype=np.float64)
-    if q.shape != (4,) or r.shape != (3,) or not np.linalg.norm(q) > 0:
-        raise ValueError(f"{source}: label {label['filename']!r} needs a non-zero 4-vector q_vbs2tango_true "
-                         f"(scalar first) and a 3-vector r_Vo2To_vbs_true (metres)")
-    return opencv_to_opengl(label_to_c2w_opencv(q, r))
 
 
 @dataclass
@@ -224,7 +200,7 @@ class SpeedPlus(DataParser):
         camera = read_camera(config.data)
         labels, source = select_labels(config, split)
         paths = image_paths(config.data, config.domain, labels, camera, source)
-        c2w = np.stack([label_c2w_opengl(label, source) for label in labels])[:, :3]
+        c2w = np.stack([label_c2w_opengl(label) for label in labels])[:, :3]
         c2w[:, :, 3] *= config.scale_factor
         cameras = Cameras(
             camera_to_worlds=torch.from_numpy(c2w).float(),

@@ -25,13 +25,13 @@ from nerfstudio.data.utils.dataparsers_utils import (
     get_train_eval_split_fraction,
     get_train_eval_split_interval,
 )
-from PIL import Image
 
+from nerfinv_plugin.data.camera_and_labels import label_c2w_opengl
+from nerfinv_plugin.data.images import ImageError, image_size, read_rgb_over_black
 from nerfinv_plugin.data.speedplus import (
     SpeedPlusDataParserConfig,
     evenly_spaced,
     image_paths,
-    label_c2w_opengl,
     read_camera,
     select_labels,
 )
@@ -60,21 +60,6 @@ def psnr(a: np.ndarray, b: np.ndarray, valid: np.ndarray | None = None) -> float
     diff = np.asarray(a, np.float64) - np.asarray(b, np.float64)
     mse = float(np.mean(diff[valid] ** 2 if valid is not None else diff**2))
     return float("inf") if mse == 0 else -10.0 * np.log10(mse)
-
-
-def read_rgb_over_black(path: Path) -> np.ndarray:
-    """An image as float RGB in [0, 1]; RGBA (and grey + alpha) images are composited over black, as the
-    model renders. 16-bit images are scaled by their own maximum, not by 255."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise FileNotFoundError(f"cannot read image {path}")
-    full = float(np.iinfo(image.dtype).max) if image.dtype.kind in "ui" else 1.0
-    image = image.astype(np.float32) / full
-    if image.ndim == 2:
-        image = image[..., None]
-    channels = image.shape[2]
-    rgb = image[..., 2::-1] if channels >= 3 else np.repeat(image[..., :1], 3, axis=2)
-    return rgb * image[..., -1:] if channels in (2, 4) else rgb
 
 
 @dataclass(frozen=True)
@@ -164,8 +149,7 @@ def _read_json(path: Path) -> dict:
 def _image_size(path: Path, source: Path) -> tuple[int, int]:
     if not path.is_file():
         raise FileNotFoundError(f"image {path} listed in {source} does not exist")
-    with Image.open(path) as image:
-        return image.size
+    return image_size(path)
 
 
 def _pose(frame: dict, source: Path) -> np.ndarray:
@@ -311,7 +295,7 @@ def speedplus_views(data_dir: Path, split: str = "test",
         camera = read_camera(config.data)
         labels, source = select_labels(config, split)
         paths = image_paths(config.data, config.domain, labels, camera, source)
-        poses = [label_c2w_opengl(label, source) for label in labels]
+        poses = [label_c2w_opengl(label) for label in labels]
     except ValueError as err:
         raise DataFormatError(str(err)) from err
     intrinsics = Intrinsics.from_opencv(camera.matrix, camera.width, camera.height)
@@ -396,7 +380,10 @@ def score_views(loaded: LoadedModel, held_out: HeldOutSet) -> list[ViewScore]:
     """Render every view at its model-frame pose and score it against its image (over black)."""
     scores = []
     for view, c2w in zip(held_out.views, model_poses(loaded, held_out)):
-        observed, valid = read_rgb_over_black(view.image), None
+        try:
+            observed, valid = read_rgb_over_black(view.image), None
+        except ImageError as err:
+            raise DataFormatError(f"{err}; replace it with a readable image") from err
         if observed.shape[:2] != (view.intrinsics.height, view.intrinsics.width):
             raise DataFormatError(f"image {view.image} is {observed.shape[1]}x{observed.shape[0]}, not the "
                                   f"{view.intrinsics.width}x{view.intrinsics.height} its camera says")
