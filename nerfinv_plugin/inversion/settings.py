@@ -220,8 +220,9 @@ def read_yaml(path: Path) -> dict:
 
 
 def presets_dir() -> Path:
-    """The repository's ``configs/`` folder (the package is installed in editable mode, as the README says)."""
-    return Path(__file__).resolve().parents[2] / "configs"
+    """The presets, ``configs/`` of the repository: the package's ``configs`` is a link to it, and a wheel
+    (a non-editable install) carries the files themselves there."""
+    return Path(__file__).resolve().parents[1] / "configs"
 
 
 def preset_path(name: str) -> Path:
