@@ -1,6 +1,7 @@
 """The faster field pieces used at inversion time compute nerfstudio's functions: the compiled hash-grid
-kernel (values and gradients with respect to the positions; used only where the table is frozen) and the
-max-norm scene contraction."""
+kernel (values and gradients with respect to the positions; used only where the table is frozen), the fused
+torch forward it falls back to (CUDA, trainable tables) and the max-norm scene contraction. Each runs on the
+CPU and, where there is one, on CUDA."""
 
 import pytest
 import torch
@@ -12,23 +13,28 @@ from nerfinv_plugin.model.contraction import use_max_norm_contraction
 from nerfinv_plugin.model.hash_kernel import kernel_hash_forward, use_hash_kernel
 
 needs_kernel = pytest.mark.skipif(not hash_kernel.enabled(), reason="NERFINV_HASH_KERNEL=0")
+DEVICES = [pytest.param("cpu"), pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
+                                                                              reason="no CUDA device"))]
 
 
-def frozen_encoding(levels: int, log2_size: int, max_res: int) -> HashEncoding:
+def frozen_encoding(levels: int, log2_size: int, max_res: int, device: str = "cpu") -> HashEncoding:
     torch.manual_seed(0)
     enc = HashEncoding(num_levels=levels, min_res=16, max_res=max_res, log2_hashmap_size=log2_size,
-                       implementation="torch")
+                       implementation="torch").to(device)
     enc.hash_table.requires_grad_(False)
     return enc
 
 
 @needs_kernel
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("levels,log2_size,max_res", [(5, 14, 128), (16, 19, 2048)])
-def test_kernel_matches_nerfstudio_values_and_position_gradients(levels, log2_size, max_res):
-    assert hash_kernel.extension() is not None, "the kernel did not build on this machine"
-    enc = frozen_encoding(levels, log2_size, max_res)
-    x = torch.rand(3000, 3)
-    x[:10] = torch.tensor([0.0, 0.5, 1.0])  # lattice points, where floor == ceil
+def test_kernel_matches_nerfstudio_values_and_position_gradients(levels, log2_size, max_res, device):
+    """On the CPU the compiled kernel; on CUDA the fused torch forward that ``kernel_hash_forward`` takes there."""
+    if device == "cpu":
+        assert hash_kernel.extension() is not None, "the kernel did not build on this machine"
+    enc = frozen_encoding(levels, log2_size, max_res, device)
+    x = torch.rand(3000, 3, device=device)
+    x[:10] = torch.tensor([0.0, 0.5, 1.0], device=device)  # lattice points, where floor == ceil
     x = x.view(30, 100, 3).requires_grad_(True)  # batch dimensions are kept
     reference, ours = enc.pytorch_fwd(x), kernel_hash_forward(enc, x)
     assert ours.shape == reference.shape
@@ -39,20 +45,28 @@ def test_kernel_matches_nerfstudio_values_and_position_gradients(levels, log2_si
     torch.testing.assert_close(grad_ours, grad_ref, rtol=1e-4, atol=1e-4)
 
 
-def test_trainable_tables_keep_the_torch_path():
-    enc = frozen_encoding(4, 12, 64)
-    enc.hash_table.requires_grad_(True)
+@pytest.mark.parametrize("device", DEVICES)
+def test_trainable_tables_keep_the_torch_path(device):
+    """The kernel gives tables no gradient; training needs nerfstudio's, and gets it."""
+    reference, enc = frozen_encoding(4, 12, 64, device), frozen_encoding(4, 12, 64, device)
+    for table in (reference.hash_table, enc.hash_table):
+        table.requires_grad_(True)
     assert use_hash_kernel(torch.nn.ModuleList([enc])) == 1
-    x = torch.rand(100, 3)
-    out = enc(x)
-    (grad_table,) = torch.autograd.grad(out.sum(), [enc.hash_table])
-    assert grad_table.abs().sum() > 0  # the kernel gives tables no gradient; training needs one
+    x = torch.rand(100, 3, device=device)
+    expected, out = reference(x), enc(x)
+    torch.testing.assert_close(out, expected, rtol=1e-5, atol=1e-7)
+    cotangent = torch.randn_like(out)
+    (grad_ref,) = torch.autograd.grad((expected * cotangent).sum(), [reference.hash_table])
+    (grad_table,) = torch.autograd.grad((out * cotangent).sum(), [enc.hash_table])
+    torch.testing.assert_close(grad_table, grad_ref, rtol=1e-5, atol=1e-6)
+    assert int((grad_table != 0).sum()) > 100  # the 100 points touch many table entries
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("order", [float("inf"), None])
-def test_max_norm_contraction_matches_nerfstudio(order):
+def test_max_norm_contraction_matches_nerfstudio(order, device):
     torch.manual_seed(0)
-    x = (torch.randn(4000, 3) * 1.5).requires_grad_(True)  # about half inside the unit box
+    x = (torch.randn(4000, 3, device=device) * 1.5).requires_grad_(True)  # about half inside the unit box
     reference, ours = SceneContraction(order=order), SceneContraction(order=order)
     assert use_max_norm_contraction(torch.nn.ModuleList([ours])) == 1
     expected, got = reference(x), ours(x)

@@ -79,6 +79,13 @@ def _probe(loaded) -> torch.Tensor:
     return c2w.grad
 
 
+def _assert_reaches_pose(grad: torch.Tensor) -> None:
+    """A pose gradient that is there: finite everywhere, and not zero in the rotation nor the translation
+    (a model that renders the same colour everywhere would give zero)."""
+    assert torch.isfinite(grad).all(), grad
+    assert float(grad[0, :, :3].abs().max()) > 0 and float(grad[0, :, 3].abs().max()) > 0, grad
+
+
 def test_stock_nerfacto_with_lpips_weights_loads_offline(small_data, tmp_path, monkeypatch):
     model = NerfactoModelConfig(implementation="torch", num_levels=4, max_res=64, log2_hashmap_size=12,
                                 hidden_dim=16, hidden_dim_color=16, num_proposal_samples_per_ray=(16, 8),
@@ -94,7 +101,7 @@ def test_stock_nerfacto_with_lpips_weights_loads_offline(small_data, tmp_path, m
     loaded = load_model(config, device="cpu")
     assert type(loaded.model).__name__ == "NerfactoModel"
     assert all(not p.requires_grad for p in loaded.model.parameters())
-    assert _probe(loaded).abs().sum() > 0
+    _assert_reaches_pose(_probe(loaded))
 
 
 @pytest.mark.parametrize("name", ["vanilla-nerf", "mipnerf"])
@@ -103,7 +110,7 @@ def test_pure_torch_nerfs_render_with_pose_gradients_on_cpu(name, small_data, tm
     if name == "mipnerf":
         model = replace(model, _target=MipNerfModel, loss_coefficients={"rgb_loss_coarse": 0.1, "rgb_loss_fine": 1.0})
     loaded = load_model(_train(model, name, small_data, tmp_path, iterations=1), device="cpu")
-    assert _probe(loaded).abs().sum() > 0
+    _assert_reaches_pose(_probe(loaded))
 
 
 def _untrained_run(model_config, method_name: str, out: Path) -> Path:
@@ -180,10 +187,31 @@ def test_clear_errors_for_bad_runs(toy_run, tmp_path):
     shutil.rmtree(run / "nerfstudio_models")
     with pytest.raises(ModelLoadError, match="no checkpoint step-\\*.ckpt in .*nerfstudio_models"):
         load_model(run / "config.yml")
-    with pytest.raises(ModelLoadError, match="torch sees no CUDA device"):
-        if torch.cuda.is_available():
-            raise ModelLoadError("torch sees no CUDA device (skipped: this machine has one)")
+
+
+def test_cuda_asked_for_where_torch_sees_none_is_a_clear_error(toy_run, monkeypatch):
+    """Checked on every machine: a CUDA machine is made to look like one without."""
+    config, _ = toy_run
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ModelLoadError, match="--device cuda was asked for but torch sees no CUDA device"):
         load_model(config, device="cuda")
+    assert load_model(config, device="auto").device == torch.device("cpu")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_a_run_loads_on_cuda_and_renders_as_on_the_cpu(toy_run):
+    config, _ = toy_run
+    on_cpu, on_cuda = load_model(config, device="cpu"), load_model(config, device="cuda")
+    assert on_cuda.device.type == "cuda" and load_model(config, device="auto").device.type == "cuda"
+    assert all(p.device.type == "cuda" and not p.requires_grad for p in on_cuda.model.parameters())
+    c2w = torch.eye(4)[None, :3].clone()
+    c2w[0, 2, 3] = 4.0
+    pixels = torch.tensor([[20, 30], [25, 40], [10, 10]])
+    intrinsics = Intrinsics(60.0, 60.0, 40.0, 25.0, 80, 50)
+    expected = render(on_cpu, c2w, intrinsics, pixels).rgb
+    got = render(on_cuda, c2w.cuda(), intrinsics, pixels).rgb
+    assert got.device.type == "cuda"
+    torch.testing.assert_close(got.cpu(), expected, rtol=1e-3, atol=1e-4)
 
 
 def test_step_dependent_state_is_restored(toy_run, tmp_path):

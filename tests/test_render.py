@@ -8,7 +8,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from nerfinv_plugin.model.evaluate import psnr, read_rgb_over_black
+from nerfinv_plugin.data.images import read_rgb_over_black
+from nerfinv_plugin.model.evaluate import psnr
 from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loading import load_model
 from nerfinv_plugin.model.render import (
@@ -20,11 +21,15 @@ from nerfinv_plugin.model.render import (
     set_sample_counts,
 )
 
+DEVICES = [pytest.param("cpu"), pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
+                                                                              reason="no CUDA device"))]
 
-@pytest.fixture(scope="module")
-def toy(toy_run):
+
+@pytest.fixture(scope="module", params=DEVICES)
+def toy(toy_run, request):
+    """The fixture model loaded on each device (CUDA where there is one)."""
     config, data = toy_run
-    return load_model(config, device="cpu"), data
+    return load_model(config, device=request.param), data
 
 
 def _view(data, split: str, index: int) -> tuple[np.ndarray, Intrinsics, str]:
@@ -106,14 +111,14 @@ def test_pose_gradient_matches_finite_differences(toy):
         h = 1e-3
         for d in directions:
             with torch.no_grad():
-                numeric = (loss(h * d) - loss(-h * d)) / (2 * h)
-            analytic = (grad * d).sum()
-            assert abs(numeric - analytic) <= 0.05 * abs(analytic), (d, float(numeric), float(analytic))
+                numeric = float(loss(h * d) - loss(-h * d)) / (2 * h)
+            analytic = float((grad * d).sum())
+            assert abs(numeric - analytic) <= 0.05 * abs(analytic), (d, numeric, analytic)
     # With the sampling live (as in inversion), the slope along the gradient still agrees closely.
     with torch.no_grad():
         d = grad / grad.norm()
-        live = (loss(h * d) - loss(-h * d)) / (2 * h)
-    assert abs(live - grad.norm()) <= 0.1 * grad.norm(), (float(live), float(grad.norm()))
+        live = float(loss(h * d) - loss(-h * d)) / (2 * h)
+    assert abs(live - float(grad.norm())) <= 0.1 * float(grad.norm()), (live, float(grad.norm()))
 
 
 def test_rendering_a_training_pose_reproduces_the_image(toy):
@@ -156,18 +161,19 @@ def test_rays_and_outputs_follow_the_pose_convention(toy):
     c2w = torch.eye(4)[None].clone()
     c2w[0, :3, :3], c2w[0, :3, 3] = rot, torch.tensor([0.5, -1.0, 4.0])
     intrinsics = Intrinsics(60.0, 60.0, 40.0, 25.0, 80, 50)
-    bundle = ray_bundle(loaded, c2w, intrinsics, torch.tensor([[24, 39], [0, 0]]))
-    torch.testing.assert_close(bundle.origins[0], c2w[0, :3, 3])
+    bundle = ray_bundle(loaded, c2w.to(loaded.device), intrinsics, torch.tensor([[24, 39], [0, 0]]))
+    assert bundle.origins.device.type == loaded.device.type
+    torch.testing.assert_close(bundle.origins[0].cpu(), c2w[0, :3, 3])
     # Pixel (row 24, col 39) is sampled at (39.5, 24.5): half a pixel left of and above (40, 25); image
     # up is +y in OpenGL camera axes, and the camera looks along -z.
     centre_dir = rot @ torch.tensor([-0.5 / 60, 0.5 / 60, -1.0])
-    torch.testing.assert_close(bundle.directions[0], centre_dir / centre_dir.norm(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(bundle.directions[0].cpu(), centre_dir / centre_dir.norm(), rtol=1e-5, atol=1e-6)
 
 
 def test_keep_gradients_patches_one_model_and_is_undone(toy):
     loaded, _ = toy
     model = loaded.model
-    c2w = torch.eye(4)[None, :3].clone()
+    c2w = torch.eye(4, device=loaded.device)[None, :3].clone()
     c2w[0, 2, 3] = 4.0
     c2w.requires_grad_(True)
     intrinsics = Intrinsics(10.0, 10.0, 2.0, 2.0, 4, 4)
@@ -182,7 +188,14 @@ def test_keep_gradients_patches_one_model_and_is_undone(toy):
         rgb = outputs()
         assert rgb.requires_grad
         rgb.sum().backward()
-        assert c2w.grad is not None and c2w.grad.abs().sum() > 0
+    # The patched method gives the colours and the pose gradient that our renderer gives on the same rays.
+    patched = c2w.grad.clone()
+    c2w.grad = None
+    ours = render(loaded, c2w, intrinsics, pixels).rgb
+    ours.sum().backward()
+    torch.testing.assert_close(rgb.detach().reshape(-1, 3), ours.detach()[0], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(patched, c2w.grad, rtol=1e-4, atol=1e-6)
+    assert float(patched.abs().max()) > 1e-4  # and the rays see the object: the gradient says something
     assert not outputs().requires_grad
     with pytest.raises(KeyError), keep_gradients(model):
         raise KeyError("leave by an exception")
@@ -223,15 +236,19 @@ def test_rays_bounded_to_a_target_sphere_render_as_sharp_with_a_third_of_the_sam
         distance = float(np.linalg.norm(c2w[:3, 3] - centre.numpy()))
         assert float(bundle.nears[0]) == pytest.approx(distance - loaded.dataparser_scale, abs=0.02)
         assert float(bundle.fars[0]) == pytest.approx(distance + loaded.dataparser_scale, abs=0.02)
-        # Gradients still reach the pose through the bounded rays.
         leaf = torch.as_tensor(c2w[None, :3], dtype=torch.float32).requires_grad_(True)
         pixels = _object_pixels(loaded, c2w, intrinsics, 64)
-        target = torch.as_tensor(observed, dtype=torch.float32)[pixels[:, 0], pixels[:, 1]]
+        target = torch.as_tensor(observed, dtype=torch.float32, device=loaded.device)[pixels[:, 0], pixels[:, 1]]
         (render(loaded, leaf, intrinsics, pixels).rgb[0] - target).pow(2).mean().backward()
-        assert torch.isfinite(leaf.grad).all() and float(leaf.grad.abs().sum()) > 0
+        bounded_grad = leaf.grad.clone()
     finally:
         loaded.target_sphere = None
         set_sample_counts(loaded, *trained)
+    # Gradients reach the pose through the bounded rays, and point where the unbounded rays' do (0.99 here).
+    leaf.grad = None
+    (render(loaded, leaf, intrinsics, pixels).rgb[0] - target).pow(2).mean().backward()
+    assert torch.isfinite(bounded_grad).all()
+    assert float(torch.nn.functional.cosine_similarity(bounded_grad.flatten(), leaf.grad.flatten(), 0)) > 0.9
     assert 0 < hits.sum() < hits.size and image_rays == hits.sum()  # rays that miss the sphere: not rendered
     assert np.all(bounded[~hits] == 0.0)  # but black, as the model renders empty space
     assert psnr(bounded, observed) > full - 0.5, (psnr(bounded, observed), full)
