@@ -28,7 +28,7 @@ from nerfinv_plugin.initialization.extent import object_radius
 from nerfinv_plugin.inversion.session import bound_rays
 from nerfinv_plugin.inversion.settings import RenderConfig
 from nerfinv_plugin.model.loading import load_model
-from nerfinv_plugin.model.render import Intrinsics, render_image
+from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, render_image
 from nerfinv_plugin.synth.scenes import SCENE_CENTRES
 
 TOY_CENTRE = np.asarray(SCENE_CENTRES["toy"], dtype=np.float64)
@@ -88,11 +88,15 @@ RADIUS_M = 0.8
 
 @pytest.fixture(scope="module")
 def toy_model(toy_run):
-    """The fixture model, rendering as ns-invert does (rays bounded to the object, (8, 4) / 8 samples)."""
-    loaded = load_model(toy_run[0], device="cpu")
-    centre = torch.as_tensor(loaded.point_to_model(TOY_CENTRE), dtype=torch.float32)
-    bound_rays(loaded, centre, RenderConfig(target_radius_m=RADIUS_M))
-    return loaded
+    """The fixture model as loaded."""
+    return load_model(toy_run[0], device="cpu")
+
+
+@pytest.fixture(scope="module")
+def bounded(toy_model):
+    """How ns-invert renders the fixture model (rays bounded to the object, (8, 4) / 8 samples)."""
+    centre = torch.as_tensor(toy_model.point_to_model(TOY_CENTRE), dtype=torch.float32)
+    return bound_rays(toy_model, centre, RenderConfig(target_radius_m=RADIUS_M))[0]
 
 
 def test_object_radius_from_the_density_holds_the_toy_and_is_not_much_larger(toy_model):
@@ -102,21 +106,21 @@ def test_object_radius_from_the_density_holds_the_toy_and_is_not_much_larger(toy
     assert 0.72 < radius < 1.0, radius
 
 
-def test_an_in_plane_angle_of_the_bank_is_a_rolled_camera(toy_model):
+def test_an_in_plane_angle_of_the_bank_is_a_rolled_camera(toy_model, bounded):
     """Entry 1 of view 0 (in-plane angle 90 degrees) claims a rolled camera: rendering that camera gives the
     view's image turned a quarter clockwise (x right, y down: right goes to down), which np.rot90 does
     exactly; the other sense of rotation must not match."""
     config = BankConfig(subdivisions=0, in_plane=4, render_px=48)
     radius = RADIUS_M * toy_model.dataparser_scale
     centre = toy_model.point_to_model(TOY_CENTRE)
-    bank = render_bank(toy_model, centre, radius, config)
+    bank = render_bank(toy_model, bounded, centre, radius, config)
     entries = bank_entries(bank, config)
     assert len(entries.views) == config.views * config.in_plane
     intrinsics = bank_intrinsics(config)
     c2w_cv = np.eye(4)
     c2w_cv[:3, :3] = entries.views[1].w2c_rotation.T
     c2w_cv[:3, 3] = bank.c2w[0][:3, 3]
-    rolled = render_image(toy_model, c2w_cv @ OPENCV_TO_OPENGL, intrinsics)
+    rolled = render_image(toy_model, c2w_cv @ OPENCV_TO_OPENGL, intrinsics, bounded)
     view = bank.rgb[0].astype(np.float64) / 255.0
     clockwise, anticlockwise = np.rot90(view, k=-1), np.rot90(view, k=1)
     assert np.abs(rolled - clockwise).mean() < 0.25 * np.abs(rolled - anticlockwise).mean()
@@ -129,12 +133,12 @@ def test_an_in_plane_angle_of_the_bank_is_a_rolled_camera(toy_model):
     assert abs(found.size - box.box_size) < 1.5
 
 
-def test_the_bank_recalls_the_held_out_views(toy_model, toy_run):
+def test_the_bank_recalls_the_held_out_views(toy_model, bounded, toy_run):
     """Every held-out view of the fixture has a hypothesis within 15 degrees among its first 20."""
     config = BankConfig(subdivisions=2)
     radius = RADIUS_M * toy_model.dataparser_scale
     centre = toy_model.point_to_model(TOY_CENTRE)
-    entries = bank_entries(render_bank(toy_model, centre, radius, config), config)
+    entries = bank_entries(render_bank(toy_model, bounded, centre, radius, config), config)
     data = toy_run[1]
     meta = json.loads((data / "transforms_test.json").read_text())
     best = []
@@ -163,9 +167,9 @@ def test_the_bank_cache_is_reused_and_rebuilt_when_the_checkpoint_changes(toy_ru
     config = BankConfig(subdivisions=0, render_px=16)
     loaded = load_model(run / "config.yml", device="cpu")
     centre = loaded.point_to_model(TOY_CENTRE)
-    first, path, built = cached_bank(loaded, centre, 0.8, config)
+    first, path, built = cached_bank(loaded, AS_TRAINED, centre, 0.8, config)
     assert built and path.is_file()
-    again, path_again, built_again = cached_bank(loaded, centre, 0.8, config)
+    again, path_again, built_again = cached_bank(loaded, AS_TRAINED, centre, 0.8, config)
     assert not built_again and path_again == path and np.array_equal(again.rgb, first.rgb)
     # A retrained model: same file name, other weights.
     checkpoint = next((run / "nerfstudio_models").glob("*.ckpt"))
@@ -174,9 +178,9 @@ def test_the_bank_cache_is_reused_and_rebuilt_when_the_checkpoint_changes(toy_ru
     saved["pipeline"][key] = saved["pipeline"][key] * 0.5
     torch.save(saved, checkpoint)
     changed = load_model(run / "config.yml", device="cpu")
-    _, path_changed, built_changed = cached_bank(changed, centre, 0.8, config)
+    _, path_changed, built_changed = cached_bank(changed, AS_TRAINED, centre, 0.8, config)
     assert built_changed and path_changed != path
     # Other bank settings are another bank too.
-    _, path_other, built_other = cached_bank(changed, centre, 0.8, BankConfig(subdivisions=0, render_px=20))
+    _, path_other, built_other = cached_bank(changed, AS_TRAINED, centre, 0.8, BankConfig(subdivisions=0, render_px=20))
     assert built_other and path_other != path_changed
     assert Path(path_other).parent == tmp_path / "cache" / "banks"

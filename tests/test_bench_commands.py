@@ -17,11 +17,11 @@ import pytest
 import torch
 import tyro
 
-from nerfinv_plugin.bench.model_settings import AS_TRAINED, Sampling, model_settings, sampled
 from nerfinv_plugin.bench.observed import read_observed
 from nerfinv_plugin.bench.perf import compare_loops, profile_ours, sweep
 from nerfinv_plugin.bench.recall import bank_benchmark, bank_recall
 from nerfinv_plugin.bench.render_speed import render_problem, render_speed
+from nerfinv_plugin.bench.sampling import AS_TRAINED, Sampling
 from nerfinv_plugin.bench.screw import screw_runs, summarize
 from nerfinv_plugin.cli.bench import BankBench, Commands, GridBench, PerfBench, RenderBench, ScrewBench, entrypoint
 from nerfinv_plugin.data.sequences import read_sequence
@@ -31,7 +31,14 @@ from nerfinv_plugin.initialization.detect import find_object
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.settings import RenderConfig
 from nerfinv_plugin.model.loading import load_model
-from nerfinv_plugin.model.render import MAX_CHUNK_RAYS, bound_to_target, bytes_per_ray, ray_bundle, render
+from nerfinv_plugin.model.render import (
+    MAX_CHUNK_RAYS,
+    RenderSettings,
+    bound_to_target,
+    bytes_per_ray,
+    ray_bundle,
+    render,
+)
 from nerfinv_plugin.synth.scenes import SCENE_CENTRES
 
 TOY_TARGET = tuple(float(v) for v in SCENE_CENTRES["toy"])
@@ -63,10 +70,10 @@ def test_the_model_benchmarks_share_their_options():
 
 
 def _settings(loaded) -> tuple:
-    """What the benchmarks may change and must put back: target sphere, sample counts, chunk size, and the
-    weights frozen without gradients."""
+    """What the benchmarks must leave as loaded: sample counts, chunk size, and the weights frozen without
+    gradients."""
     sampler = loaded.model.proposal_sampler
-    return (loaded.target_sphere, sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray,
+    return (sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray,
             loaded.chunk_rays, any(p.requires_grad for p in loaded.model.parameters()),
             any(p.grad is not None for p in loaded.model.parameters()))
 
@@ -92,16 +99,14 @@ def unchanged(fresh):
     assert _settings(loaded) == as_loaded
 
 
-def test_the_settings_block_restores_the_model_after_an_exception(unchanged):
+def test_a_benchmark_sampling_is_a_render_settings_value_and_leaves_the_model_alone(unchanged):
     loaded = unchanged
-    centre = torch.zeros(3)
-    with pytest.raises(RuntimeError), sampled(loaded, Sampling(0.5, (6, 3), 5), centre):
-        sampler = loaded.model.proposal_sampler
-        assert (sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray) == ((6, 3), 5)
-        assert loaded.target_sphere[1] == pytest.approx(0.5 * loaded.dataparser_scale)
-        raise RuntimeError
-    with model_settings(loaded):
-        loaded.target_sphere = (centre, 1.0)  # what bound_rays does inside the bank benchmark
+    settings = Sampling(0.5, (6, 3), 5).settings(loaded, torch.zeros(3))
+    assert (settings.proposal_samples, settings.nerf_samples) == ((6, 3), 5) and settings.chunk_rays >= 1
+    assert settings.target_sphere[1] == pytest.approx(0.5 * loaded.dataparser_scale)
+    trained = AS_TRAINED.settings(loaded, torch.zeros(3))
+    assert (trained.target_sphere, trained.proposal_samples, trained.nerf_samples, trained.chunk_rays) == (
+        None, None, None, None)
 
 
 @pytest.fixture(scope="module")
@@ -170,8 +175,7 @@ def test_perf_sweep_and_profile(unchanged, observed):
     assert [(p.candidates, p.pixels, p.timing.rays_per_iteration, p.timing.iterations) for p in swept.points] == [
         (1, 16, 16, 1), (2, 8, 16, 1)]
     # The chunk holds what the budget allows for a ray of the sampling swept (not of the model as loaded).
-    with sampled(unchanged, sampling, observed.centre):
-        per_ray = bytes_per_ray(unchanged)
+    per_ray = bytes_per_ray(unchanged, sampling.settings(unchanged, observed.centre))
     assert 0 < swept.memory_budget_bytes <= 0.25 * psutil.virtual_memory().total
     assert swept.chunk_rays == pytest.approx(min(MAX_CHUNK_RAYS, swept.memory_budget_bytes / (2 * per_ray)), rel=0.1)
     assert 0 < sum(p.timing.seconds for p in swept.points) < wall
@@ -197,9 +201,8 @@ def test_render_batched_and_per_candidate_agree_on_the_same_rays(unchanged, monk
 
     bounded = Sampling(0.8, (8, 4), 8)
     aimed = render_problem(loaded, 2, 24, 5.0, 40, 25, bounded, on_target=True)
-    sphere = bounded.sphere(loaded, aimed.centre)
-    with model_settings(loaded, sphere):
-        hits = bound_to_target(loaded, ray_bundle(loaded, aimed.c2w[:1], aimed.intrinsics, aimed.pixels))
+    sphere = RenderSettings(bounded.sphere(loaded, aimed.centre))
+    hits = bound_to_target(sphere, ray_bundle(loaded, aimed.c2w[:1], aimed.intrinsics, aimed.pixels))
     assert bool(hits.all())  # every pixel drawn is on the target sphere
     fewer = render_speed(loaded, aimed, bounded, repeats=1)
     assert 0 < fewer.colour_diff_mean < 0.05, fewer  # fewer samples on bounded rays: close, not equal

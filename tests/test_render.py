@@ -14,11 +14,12 @@ from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loading import load_model
 from nerfinv_plugin.model.render import (
     Intrinsics,
+    RenderSettings,
     bound_to_target,
     ray_bundle,
     render,
     render_image,
-    set_sample_counts,
+    render_settings,
 )
 
 DEVICES = [pytest.param("cpu"), pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
@@ -143,7 +144,7 @@ def test_batch_of_candidates_equals_single_renders_and_chunking_changes_nothing(
     (batched.rgb.square().sum() + batched.depth.sum()).backward()
     grad_batched = poses.grad.clone()
     poses.grad = None
-    chunked = render(loaded, poses, intrinsics, pixels, chunk_rays=37)  # chunks cut across candidates
+    chunked = render(loaded, poses, intrinsics, pixels, RenderSettings(chunk_rays=37))  # chunks cut across candidates
     (chunked.rgb.square().sum() + chunked.depth.sum()).backward()
     torch.testing.assert_close(chunked.rgb, batched.rgb, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(chunked.accumulation, batched.accumulation, rtol=1e-5, atol=1e-6)
@@ -218,32 +219,34 @@ def test_rays_bounded_to_a_target_sphere_render_as_sharp_with_a_third_of_the_sam
         rendered_rays.append(len(bundle))
         return forward(bundle)
 
-    try:
-        loaded.target_sphere = (centre, 1.0 * loaded.dataparser_scale)
-        set_sample_counts(loaded, (16, 8), 12)
-        monkeypatch.setattr(loaded.model, "forward", counting)
-        bounded = render_image(loaded, c2w, intrinsics)
-        image_rays = sum(rendered_rays)
-        rows, cols = np.meshgrid(np.arange(intrinsics.height), np.arange(intrinsics.width), indexing="ij")
-        everywhere = torch.as_tensor(np.stack([rows.ravel(), cols.ravel()], 1))
-        hits = bound_to_target(loaded, ray_bundle(loaded, torch.as_tensor(c2w[None], dtype=torch.float32),
-                                                  intrinsics, everywhere)).reshape(rows.shape).numpy()
-        # The camera looks at the sphere's centre from 5 m: the ray through the image centre crosses it
-        # from 4 m to 6 m (model units follow the dataparser scale).
-        middle = torch.tensor([[intrinsics.height // 2, intrinsics.width // 2]])
-        bundle = ray_bundle(loaded, torch.as_tensor(c2w[None], dtype=torch.float32), intrinsics, middle)
-        assert bool(bound_to_target(loaded, bundle)[0])
-        distance = float(np.linalg.norm(c2w[:3, 3] - centre.numpy()))
-        assert float(bundle.nears[0]) == pytest.approx(distance - loaded.dataparser_scale, abs=0.02)
-        assert float(bundle.fars[0]) == pytest.approx(distance + loaded.dataparser_scale, abs=0.02)
-        leaf = torch.as_tensor(c2w[None, :3], dtype=torch.float32).requires_grad_(True)
-        pixels = _object_pixels(loaded, c2w, intrinsics, 64)
-        target = torch.as_tensor(observed, dtype=torch.float32, device=loaded.device)[pixels[:, 0], pixels[:, 1]]
-        (render(loaded, leaf, intrinsics, pixels).rgb[0] - target).pow(2).mean().backward()
-        bounded_grad = leaf.grad.clone()
-    finally:
-        loaded.target_sphere = None
-        set_sample_counts(loaded, *trained)
+    settings = render_settings(loaded, (centre, 1.0 * loaded.dataparser_scale), (16, 8), 12)
+    monkeypatch.setattr(loaded.model, "forward", counting)
+    bounded = render_image(loaded, c2w, intrinsics, settings)
+    image_rays = sum(rendered_rays)
+    rows, cols = np.meshgrid(np.arange(intrinsics.height), np.arange(intrinsics.width), indexing="ij")
+    everywhere = torch.as_tensor(np.stack([rows.ravel(), cols.ravel()], 1))
+    hits = bound_to_target(settings, ray_bundle(loaded, torch.as_tensor(c2w[None], dtype=torch.float32),
+                                                intrinsics, everywhere)).reshape(rows.shape).numpy()
+    # The camera looks at the sphere's centre from 5 m: the ray through the image centre crosses it
+    # from 4 m to 6 m (model units follow the dataparser scale).
+    middle = torch.tensor([[intrinsics.height // 2, intrinsics.width // 2]])
+    bundle = ray_bundle(loaded, torch.as_tensor(c2w[None], dtype=torch.float32), intrinsics, middle)
+    assert bool(bound_to_target(settings, bundle)[0])
+    distance = float(np.linalg.norm(c2w[:3, 3] - centre.numpy()))
+    assert float(bundle.nears[0]) == pytest.approx(distance - loaded.dataparser_scale, abs=0.02)
+    assert float(bundle.fars[0]) == pytest.approx(distance + loaded.dataparser_scale, abs=0.02)
+    leaf = torch.as_tensor(c2w[None, :3], dtype=torch.float32).requires_grad_(True)
+    pixels = _object_pixels(loaded, c2w, intrinsics, 64)
+    target = torch.as_tensor(observed, dtype=torch.float32, device=loaded.device)[pixels[:, 0], pixels[:, 1]]
+    (render(loaded, leaf, intrinsics, pixels, settings).rgb[0] - target).pow(2).mean().backward()
+    bounded_grad = leaf.grad.clone()
+    # The sample counts hold only while a render runs, also when it fails.
+    assert (sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray) == trained
+    monkeypatch.setattr(loaded.model, "forward", lambda bundle: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        render(loaded, leaf, intrinsics, pixels, settings)
+    assert (sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray) == trained
+    monkeypatch.setattr(loaded.model, "forward", forward)
     # Gradients reach the pose through the bounded rays, and point where the unbounded rays' do (0.99 here).
     leaf.grad = None
     (render(loaded, leaf, intrinsics, pixels).rgb[0] - target).pow(2).mean().backward()

@@ -19,15 +19,15 @@ import psutil
 import torch
 from torch import Tensor
 
-from nerfinv_plugin.bench.model_settings import Sampling, model_settings, sampled
 from nerfinv_plugin.bench.observed import ObservedFrame
+from nerfinv_plugin.bench.sampling import Sampling
 from nerfinv_plugin.geometry.se3 import exp_se3
 from nerfinv_plugin.inversion.optimizer import IterationRecord, OptimizerConfig, PreparedFrame, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.model.fused_hash import stock_hash_encoding
 from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loaded import LoadedModel
-from nerfinv_plugin.model.render import Intrinsics, memory_budget_bytes, pinhole_cameras
+from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, memory_budget_bytes, pinhole_cameras
 
 START_MIN_DEG, START_MAX_DEG, START_SHIFT_M = 15.0, 20.0, 0.05
 """Where the throughput benchmarks start: iNeRF's protocol, 15-20 degrees and 5 cm off the truth."""
@@ -144,8 +144,9 @@ def thesis_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsic
 
 
 def our_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsics: Intrinsics, pixels: int,
-             centre: Tensor, config: OptimizerConfig, seed: int = 0) -> Timing:
-    """One Monte Carlo step of our engine: keypoints once, all candidates batched, frozen weights. The
+             centre: Tensor, config: OptimizerConfig, seed: int = 0, settings: RenderSettings = AS_TRAINED) -> Timing:
+    """One Monte Carlo step of our engine, rendering under ``settings``: keypoints once, all candidates
+    batched, frozen weights. The
     iterations' pixels come from a generator seeded as :func:`thesis_loop`'s (the ranking pixels from
     another), so both loops draw the same pixels."""
     sampler = PixelSampler("interest_region", pixels).prepare(image)
@@ -154,7 +155,8 @@ def our_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsics: 
     history: list[IterationRecord] = []
 
     def work() -> None:
-        history.extend(optimize_candidates(loaded, start, frame, config, np.random.default_rng(seed)).history)
+        history.extend(optimize_candidates(loaded, start, frame, config, np.random.default_rng(seed),
+                                           settings=settings).history)
 
     seconds, peak = _timed(loaded.device, work)
     return Timing(seconds, len(history), start.shape[0] * pixels, peak, history[0].loss)
@@ -182,11 +184,9 @@ def compare_loops(loaded: LoadedModel, observed: ObservedFrame, candidates: int,
     """Time ``iterations`` iterations of ``candidates`` x ``pixels`` rays the thesis' way (rays not bounded,
     the model's own sample counts) and then ours (rendering with ``sampling``), one after the other."""
     start = _starts(loaded, observed, candidates, seed)
-    with model_settings(loaded):
-        thesis = thesis_loop(loaded, start, observed.image, observed.intrinsics, pixels, iterations, seed=seed)
-    with sampled(loaded, sampling, observed.centre):
-        ours = our_loop(loaded, start, observed.image, observed.intrinsics, pixels, observed.centre,
-                        OptimizerConfig(iterations=iterations), seed)
+    thesis = thesis_loop(loaded, start, observed.image, observed.intrinsics, pixels, iterations, seed=seed)
+    ours = our_loop(loaded, start, observed.image, observed.intrinsics, pixels, observed.centre,
+                    OptimizerConfig(iterations=iterations), seed, sampling.settings(loaded, observed.centre))
     return PerfComparison(thesis, ours)
 
 
@@ -211,11 +211,11 @@ def sweep(loaded: LoadedModel, observed: ObservedFrame, points: Sequence[tuple[i
           sampling: Sampling, seed: int = 0) -> Sweep:
     """Time ours for each ``(candidates, pixels)`` of ``points``, ``iterations`` iterations each."""
     config = OptimizerConfig(iterations=iterations)
-    with sampled(loaded, sampling, observed.centre):
-        timed = [SweepPoint(n, p, our_loop(loaded, _starts(loaded, observed, n, seed), observed.image,
-                                           observed.intrinsics, p, observed.centre, config, seed))
-                 for n, p in points]
-        return Sweep(loaded.chunk_rays, memory_budget_bytes(loaded.device), timed)
+    settings = sampling.settings(loaded, observed.centre)
+    timed = [SweepPoint(n, p, our_loop(loaded, _starts(loaded, observed, n, seed), observed.image,
+                                       observed.intrinsics, p, observed.centre, config, seed, settings))
+             for n, p in points]
+    return Sweep(settings.chunk_rays or loaded.chunk_rays, memory_budget_bytes(loaded.device), timed)
 
 
 @dataclass(frozen=True)
@@ -242,10 +242,10 @@ def profile_ours(loaded: LoadedModel, observed: ObservedFrame, candidates: int, 
     warm up (first-call costs are not where a long run spends its time)."""
     config = OptimizerConfig(iterations=iterations)
     start = _starts(loaded, observed, candidates, seed)
-    with sampled(loaded, sampling, observed.centre):
-        our_loop(loaded, start, observed.image, observed.intrinsics, pixels, observed.centre, config, seed)
-        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
-            our_loop(loaded, start, observed.image, observed.intrinsics, pixels, observed.centre, config, seed)
+    settings = sampling.settings(loaded, observed.centre)
+    our_loop(loaded, start, observed.image, observed.intrinsics, pixels, observed.centre, config, seed, settings)
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
+        our_loop(loaded, start, observed.image, observed.intrinsics, pixels, observed.centre, config, seed, settings)
     events = profile.key_averages()
     ranked = sorted(events, key=lambda e: e.self_cpu_time_total, reverse=True)[:top]
     return Profile(iterations, sum(e.self_cpu_time_total for e in events) / 1e6,

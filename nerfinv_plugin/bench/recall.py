@@ -9,7 +9,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from nerfinv_plugin.bench.model_settings import model_settings
 from nerfinv_plugin.data.sequences import Sequence, read_sequence
 from nerfinv_plugin.geometry.errors import rotation_error_deg
 from nerfinv_plugin.initialization.bank import BankConfig, bank_file
@@ -107,17 +106,17 @@ def bank_benchmark(loaded: LoadedModel, sequences: Iterable[str], target: tuple[
     """Bound rays as ``render`` says and build (or read) the bank about ``target`` (dataset frame) as
     ``ns-invert`` does, ``rebuild`` forcing the renders (to time them), then score the first ``hypotheses``
     of every usable frame of each sequence (read at ``resolution``, one at a time). ``on_build`` is the
-    bank's progress callback. The model renders as before on return."""
+    bank's progress callback."""
     centre = loaded.point_to_model(np.asarray(target, dtype=np.float64))
-    with torch.no_grad(), model_settings(loaded):
+    with torch.no_grad():
         tic = time.perf_counter()
-        bound_rays(loaded, torch.as_tensor(centre, dtype=torch.float32), render)
+        settings, _ = bound_rays(loaded, torch.as_tensor(centre, dtype=torch.float32), render)
         bound_s = time.perf_counter() - tic
-        sphere = loaded.target_sphere
+        sphere = settings.target_sphere
         if rebuild and sphere is not None:
-            bank_file(loaded, centre, float(sphere[1]), bank).unlink(missing_ok=True)
+            bank_file(loaded, settings, centre, float(sphere[1]), bank).unlink(missing_ok=True)
         tic = time.perf_counter()
-        initializer = Initializer.create(loaded, centre, bank, on_build)
+        initializer = Initializer.create(loaded, settings, centre, bank, on_build)
         ready_s = time.perf_counter() - tic
         recalls = [bank_recall(loaded, initializer, read_sequence(spec, resolution=resolution), spec, hypotheses,
                                threshold_deg) for spec in sequences]

@@ -16,12 +16,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from nerfinv_plugin.bench.model_settings import AS_TRAINED, Sampling, sampled
 from nerfinv_plugin.bench.perf import thesis_step
+from nerfinv_plugin.bench.sampling import Sampling
 from nerfinv_plugin.inversion.optimizer import candidate_losses
 from nerfinv_plugin.inversion.starts import sphere_shell
 from nerfinv_plugin.model.loaded import LoadedModel
-from nerfinv_plugin.model.render import Intrinsics, bound_to_target, ray_bundle, render
+from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, bound_to_target, ray_bundle, render
 from nerfinv_plugin.synth.datasets import speedplus_like_camera
 
 
@@ -81,8 +81,8 @@ def render_problem(loaded: LoadedModel, candidates: int, pixels: int, range_m: f
     allowed = np.arange(width * height)
     if on_target and sampling.target_radius_m is not None:
         everywhere = torch.as_tensor(np.stack([allowed // width, allowed % width], 1))
-        with sampled(loaded, Sampling(sampling.target_radius_m, None, None), centre):
-            hits = bound_to_target(loaded, ray_bundle(loaded, c2w[:1], intrinsics, everywhere))
+        bounded = RenderSettings(Sampling(sampling.target_radius_m, None, None).sphere(loaded, centre))
+        hits = bound_to_target(bounded, ray_bundle(loaded, c2w[:1], intrinsics, everywhere))
         allowed = allowed[hits.cpu().numpy()]
     flat = rng.choice(allowed, size=pixels, replace=False)
     chosen = torch.as_tensor(np.stack([flat // width, flat % width], 1), device=loaded.device)
@@ -94,35 +94,38 @@ def _sync(loaded: LoadedModel) -> None:
         torch.cuda.synchronize(loaded.device)
 
 
-def _batched_step(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor, target: Tensor) -> Tensor:
-    """One iteration of our engine: each chunk's loss back-propagated before the next chunk is rendered."""
-    return candidate_losses(loaded, c2w, intrinsics, pixels, target, "mse", backward=True)
+def _batched_step(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor, target: Tensor,
+                  settings: RenderSettings = AS_TRAINED) -> Tensor:
+    """One iteration of our engine under ``settings``: each chunk's loss back-propagated before the next
+    chunk is rendered."""
+    return candidate_losses(loaded, c2w, intrinsics, pixels, target, "mse", backward=True, settings=settings)
 
 
 def render_speed(loaded: LoadedModel, problem: RenderProblem, sampling: Sampling, repeats: int) -> RenderSpeed:
     """Time one warm-up then ``repeats`` iterations of each way, alternately; the loss is MSE against black."""
     target = torch.zeros(problem.pixels.shape[0], 3, device=loaded.device)
+    settings = sampling.settings(loaded, problem.centre)
 
     def timed(step: Callable[..., Tensor], ours: bool) -> tuple[float, Tensor]:
         """(seconds, what the step returns), with the weights frozen for ours and trainable for the thesis."""
         leaf = problem.c2w.clone().requires_grad_(True)
-        with sampled(loaded, sampling if ours else AS_TRAINED, problem.centre):
-            loaded.model.requires_grad_(not ours)
-            try:
-                _sync(loaded)
-                start = time.perf_counter()
-                result = step(loaded, leaf, problem.intrinsics, problem.pixels, target)
-                _sync(loaded)
-                return time.perf_counter() - start, result
-            finally:
-                loaded.model.requires_grad_(False)
-                loaded.model.zero_grad(set_to_none=True)
+        loaded.model.requires_grad_(not ours)
+        try:
+            _sync(loaded)
+            start = time.perf_counter()
+            result = (step(loaded, leaf, problem.intrinsics, problem.pixels, target, settings) if ours else
+                      step(loaded, leaf, problem.intrinsics, problem.pixels, target))
+            _sync(loaded)
+            return time.perf_counter() - start, result
+        finally:
+            loaded.model.requires_grad_(False)
+            loaded.model.zero_grad(set_to_none=True)
 
     _, rgb_thesis = timed(thesis_step, ours=False)
     timed(_batched_step, ours=True)
-    with sampled(loaded, sampling, problem.centre), torch.no_grad():
-        rgb_ours = render(loaded, problem.c2w, problem.intrinsics, problem.pixels).rgb
-        chunk_rays = loaded.chunk_rays
+    with torch.no_grad():
+        rgb_ours = render(loaded, problem.c2w, problem.intrinsics, problem.pixels, settings).rgb
+    chunk_rays = settings.chunk_rays or loaded.chunk_rays
     thesis_s, ours_s = [], []
     for _ in range(repeats):
         thesis_s.append(timed(thesis_step, ours=False)[0])

@@ -30,11 +30,11 @@ from nerfinv_plugin.bench.grid import (
     read_grid,
     with_cases,
 )
-from nerfinv_plugin.bench.model_settings import Sampling
 from nerfinv_plugin.bench.observed import read_observed
 from nerfinv_plugin.bench.perf import compare_loops, profile_ours, sweep
 from nerfinv_plugin.bench.recall import bank_benchmark
 from nerfinv_plugin.bench.render_speed import render_problem, render_speed
+from nerfinv_plugin.bench.sampling import Sampling
 from nerfinv_plugin.bench.scoring import SUCCESS_DEG, aggregate, under_key
 from nerfinv_plugin.bench.screw import screw_runs, summarize
 from nerfinv_plugin.bench.tables import TABLE_MD

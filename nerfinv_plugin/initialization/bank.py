@@ -31,7 +31,7 @@ from nerfinv_plugin.geometry.frames import OPENCV_TO_OPENGL, look_at_c2w_opencv,
 from nerfinv_plugin.initialization.box_pose import BankView, pose_from_box
 from nerfinv_plugin.initialization.detect import Detection, find_object
 from nerfinv_plugin.model.loaded import LoadedModel
-from nerfinv_plugin.model.render import Intrinsics, render
+from nerfinv_plugin.model.render import Intrinsics, RenderSettings, render, sample_counts
 
 BANK_FORMAT = 1
 """Bumped whenever what a cached bank holds changes, so old caches are rebuilt."""
@@ -140,9 +140,10 @@ def bank_intrinsics(config: BankConfig) -> Intrinsics:
     return Intrinsics(focal, focal, side / 2, side / 2, side, side)
 
 
-def render_bank(loaded: LoadedModel, centre: np.ndarray, radius: float, config: BankConfig,
-                advance: Callable[[int], None] = lambda views: None) -> ViewBank:
-    """Render every viewpoint (forward only, in batches); ``advance(n)`` after each batch of ``n`` views."""
+def render_bank(loaded: LoadedModel, settings: RenderSettings, centre: np.ndarray, radius: float,
+                config: BankConfig, advance: Callable[[int], None] = lambda views: None) -> ViewBank:
+    """Render every viewpoint under ``settings`` (forward only, in batches); ``advance(n)`` after each batch
+    of ``n`` views."""
     tic = time.perf_counter()
     intrinsics = bank_intrinsics(config)
     distance = config.range_radii * radius
@@ -155,7 +156,7 @@ def render_bank(loaded: LoadedModel, centre: np.ndarray, radius: float, config: 
     with torch.no_grad():
         for start in range(0, len(c2w), config.batch_views):
             batch = torch.as_tensor(c2w[start:start + config.batch_views], dtype=torch.float32)
-            out = render(loaded, batch, intrinsics, pixels)
+            out = render(loaded, batch, intrinsics, pixels, settings)
             rgb.append((out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).reshape(-1, side, side, 3).cpu().numpy())
             acc = out.accumulation if out.accumulation is not None else out.rgb.amax(-1, keepdim=True)
             accumulation.append((acc.clamp(0, 1) * 255 + 0.5).to(torch.uint8).reshape(-1, side, side).cpu().numpy())
@@ -176,13 +177,13 @@ def file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
-def bank_key(loaded: LoadedModel, centre: np.ndarray, radius: float, config: BankConfig) -> str:
-    """What determines the renders: the checkpoint's bytes, the model's config (sample counts included),
-    the rays' bound, the viewpoints and the render size."""
-    sampler = getattr(loaded.model, "proposal_sampler", None)
-    samples = None if sampler is None else [list(sampler.num_proposal_samples_per_ray),
-                                            sampler.num_nerf_samples_per_ray]
-    sphere = loaded.target_sphere
+def bank_key(loaded: LoadedModel, settings: RenderSettings, centre: np.ndarray, radius: float,
+             config: BankConfig) -> str:
+    """What determines the renders: the checkpoint's bytes, the sample counts ``settings`` give, the rays'
+    bound, the viewpoints and the render size."""
+    counts = sample_counts(loaded, settings)
+    samples = None if counts is None else [list(counts[0]), counts[1]]
+    sphere = settings.target_sphere
     bound = None if sphere is None else [np.round(sphere[0].cpu().numpy().astype(np.float64), 6).tolist(),
                                          round(float(sphere[1]), 6)]
     settings = {"format": BANK_FORMAT, "checkpoint": file_digest(loaded.checkpoint), "samples": samples,
@@ -192,23 +193,24 @@ def bank_key(loaded: LoadedModel, centre: np.ndarray, radius: float, config: Ban
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:20]
 
 
-def bank_file(loaded: LoadedModel, centre: np.ndarray, radius: float, config: BankConfig) -> Path:
+def bank_file(loaded: LoadedModel, settings: RenderSettings, centre: np.ndarray, radius: float,
+              config: BankConfig) -> Path:
     """Where the bank of these settings is cached."""
-    return cache_root() / f"bank-{bank_key(loaded, centre, radius, config)}.npz"
+    return cache_root() / f"bank-{bank_key(loaded, settings, centre, radius, config)}.npz"
 
 
-def cached_bank(loaded: LoadedModel, centre: np.ndarray, radius: float, config: BankConfig,
+def cached_bank(loaded: LoadedModel, settings: RenderSettings, centre: np.ndarray, radius: float, config: BankConfig,
                 on_build: Callable[[int], Callable[[int], None]] | None = None) -> tuple[ViewBank, Path, bool]:
     """The bank from the cache, or rendered and cached; ``(bank, cache file, was it built)``.
     ``on_build(total_views)`` is called before rendering and returns the per-batch ``advance``."""
-    path = bank_file(loaded, centre, radius, config)
+    path = bank_file(loaded, settings, centre, radius, config)
     if path.is_file():
         try:
             return ViewBank.load(path), path, False
         except (OSError, ValueError, KeyError):
             pass  # a damaged cache file is rebuilt
     advance = on_build(config.views) if on_build is not None else (lambda views: None)
-    bank = render_bank(loaded, centre, radius, config, advance)
+    bank = render_bank(loaded, settings, centre, radius, config, advance)
     bank.save(path)
     return bank, path, True
 

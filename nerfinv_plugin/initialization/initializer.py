@@ -21,7 +21,7 @@ from nerfinv_plugin.initialization.bank import (
 from nerfinv_plugin.initialization.detect import Detection
 from nerfinv_plugin.initialization.extent import object_radius
 from nerfinv_plugin.model.loaded import LoadedModel, ModelLoadError
-from nerfinv_plugin.model.render import Intrinsics, render
+from nerfinv_plugin.model.render import Intrinsics, RenderSettings, render
 
 SILHOUETTE_RAYS = 4096
 """At most this many rays render an estimate's silhouette for the lost-object check."""
@@ -32,6 +32,8 @@ class Initializer:
     """The bank of a loaded model, ready to match frames."""
 
     loaded: LoadedModel
+    settings: RenderSettings
+    """How the bank was rendered (and the lost-object check renders)."""
     centre: np.ndarray
     """[3] object centre, model frame."""
     config: BankConfig
@@ -42,20 +44,20 @@ class Initializer:
     build_s: float
 
     @classmethod
-    def create(cls, loaded: LoadedModel, centre: np.ndarray, config: BankConfig,
+    def create(cls, loaded: LoadedModel, settings: RenderSettings, centre: np.ndarray, config: BankConfig,
                on_build: Callable[[int], Callable[[int], None]] | None = None) -> "Initializer":
-        """The bank about ``centre`` (model frame), framing the sphere rays are bounded to, or the object's
-        extent read off the model when they are not bounded."""
-        if loaded.target_sphere is not None:
-            radius = float(loaded.target_sphere[1])
+        """The bank about ``centre`` (model frame) rendered under ``settings``, framing the sphere they bound
+        rays to, or the object's extent read off the model when they do not bound them."""
+        if settings.target_sphere is not None:
+            radius = float(settings.target_sphere[1])
         else:
             radius = object_radius(loaded, torch.as_tensor(centre, dtype=torch.float32, device=loaded.device))
-        bank, path, built = cached_bank(loaded, centre, radius, config, on_build)
+        bank, path, built = cached_bank(loaded, settings, centre, radius, config, on_build)
         entries = bank_entries(bank, config)
         if not entries.views:
             raise ModelLoadError(f"the model renders nothing from any of the bank's {config.views} viewpoints about "
                                  "the target: is --target the object's centre, and did the model learn it?")
-        return cls(loaded, np.asarray(centre, dtype=np.float64), config, entries, path, built,
+        return cls(loaded, settings, np.asarray(centre, dtype=np.float64), config, entries, path, built,
                    bank.build_s)
 
     def poses(self, image: np.ndarray, detection: Detection, intrinsics: Intrinsics, count: int) -> Tensor:
@@ -64,8 +66,10 @@ class Initializer:
                                            self.config))
 
 
-def silhouette_iou(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, mask: np.ndarray) -> float:
-    """Overlap of the model's silhouette (accumulation over one half) at pose ``c2w`` [4, 4] with the
+def silhouette_iou(loaded: LoadedModel, settings: RenderSettings, c2w: Tensor, intrinsics: Intrinsics,
+                   mask: np.ndarray) -> float:
+    """Overlap of the model's silhouette (accumulation over one half, rendered under ``settings``) at pose
+    ``c2w`` [4, 4] with the
     observed ``mask`` [H, W], on a grid of at most :data:`SILHOUETTE_RAYS` pixels."""
     factor = max(1, int(np.ceil(np.sqrt(intrinsics.width * intrinsics.height / SILHOUETTE_RAYS))))
     width, height = max(1, intrinsics.width // factor), max(1, intrinsics.height // factor)
@@ -73,7 +77,7 @@ def silhouette_iou(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, mas
     rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
     pixels = torch.stack([rows.reshape(-1), cols.reshape(-1)], 1)
     with torch.no_grad():
-        out = render(loaded, c2w[None].to(torch.float32), small, pixels)
+        out = render(loaded, c2w[None].to(torch.float32), small, pixels, settings)
     opacity = out.accumulation if out.accumulation is not None else out.rgb.amax(-1, keepdim=True)
     rendered = opacity.reshape(height, width).cpu().numpy() >= 0.5
     observed = cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) >= 0.5

@@ -25,7 +25,7 @@ from nerfinv_plugin.geometry.se3 import exp_se3
 from nerfinv_plugin.inversion.losses import LossName, per_ray_loss
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.model.loaded import LoadedModel
-from nerfinv_plugin.model.render import Intrinsics, render_chunks
+from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, render_chunks
 
 
 @dataclass
@@ -92,15 +92,15 @@ def _centred(centre: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor, observed: Tensor,
-                     loss: LossName, backward: bool) -> Tensor:
-    """Mean loss of each candidate [N] over ``pixels``; with ``backward``, gradients accumulate into
-    ``c2w.grad`` chunk by chunk, so memory stays bounded by one chunk."""
+                     loss: LossName, backward: bool, settings: RenderSettings = AS_TRAINED) -> Tensor:
+    """Mean loss of each candidate [N] over ``pixels``, rendered under ``settings``; with ``backward``,
+    gradients accumulate into ``c2w.grad`` chunk by chunk, so memory stays bounded by one chunk."""
     n, p = c2w.shape[0], pixels.shape[0]
     totals = torch.zeros(n, dtype=torch.float32, device=loaded.device)
     targets = observed.repeat(n, 1)
     candidate_of_ray = torch.arange(n, device=loaded.device).repeat_interleave(p)
     with torch.set_grad_enabled(backward):
-        for part, out in render_chunks(loaded, c2w, intrinsics, pixels):
+        for part, out in render_chunks(loaded, c2w, intrinsics, pixels, settings):
             per_ray = per_ray_loss(loss, out.rgb, targets[part]) / p
             if backward and per_ray.requires_grad:  # rays that missed the target carry no gradient
                 # Non-finite rays must not poison the others' gradients; their candidates get dropped.
@@ -145,9 +145,10 @@ class CandidateStep:
     [N, 6] on the start poses, Adam with its decaying learning rate, and which candidates go on."""
 
     def __init__(self, loaded: LoadedModel, start: Tensor, frame: PreparedFrame, config: OptimizerConfig,
-                 min_candidates: int = 1):
+                 min_candidates: int = 1, settings: RenderSettings = AS_TRAINED):
         device = loaded.device
         self.loaded, self.frame, self.config, self.min_candidates = loaded, frame, config, min_candidates
+        self.settings = settings
         self.start = start.to(device, torch.float32)
         n = self.start.shape[0]
         self.theta = torch.zeros(n, 6, device=device, requires_grad=True)
@@ -181,7 +182,8 @@ class CandidateStep:
         leaf = c2w[rendered].detach().requires_grad_(True)
         losses = torch.full((c2w.shape[0],), torch.inf, device=device)
         losses[rendered] = candidate_losses(self.loaded, leaf, self.frame.intrinsics, pixels,
-                                            self.frame.colours(pixels), config.loss, backward=True)
+                                            self.frame.colours(pixels), config.loss, backward=True,
+                                            settings=self.settings)
         grad = torch.zeros_like(c2w)
         grad[rendered] = leaf.grad
         # A pose, loss or gradient that is not finite ends the candidate. nerfstudio's renderer turns NaN
@@ -221,7 +223,8 @@ class CandidateStep:
         kept = torch.nonzero(self.active).flatten()
         pixels = self.frame.eval_pixels
         losses[kept] = candidate_losses(self.loaded, final[kept], self.frame.intrinsics, pixels,
-                                        self.frame.colours(pixels), self.config.loss, backward=False)
+                                        self.frame.colours(pixels), self.config.loss, backward=False,
+                                        settings=self.settings)
         self.alive &= ~self.active | torch.isfinite(losses)
         losses = torch.where(self.active & self.alive, losses, torch.inf)
         dropped = torch.nonzero(~self.alive).flatten().tolist()
@@ -231,12 +234,12 @@ class CandidateStep:
 
 def optimize_candidates(loaded: LoadedModel, start: Tensor, frame: PreparedFrame, config: OptimizerConfig,
                         rng: np.random.Generator, on_iteration: Callable[[int, IterationRecord], None] | None = None,
-                        min_candidates: int = 1) -> StepResult:
+                        min_candidates: int = 1, settings: RenderSettings = AS_TRAINED) -> StepResult:
     """Optimize candidates ``start`` [N, 4, 4] against the prepared ``frame`` for at most
-    ``config.iterations`` iterations, drawing each iteration's pixels with ``rng``. ``on_iteration(i,
-    record)`` sees each iteration's history record as it is made (progress bars). Pruning never leaves
-    fewer than ``min_candidates``."""
-    step = CandidateStep(loaded, start, frame, config, min_candidates)
+    ``config.iterations`` iterations, rendering under ``settings``, drawing each iteration's pixels with
+    ``rng``. ``on_iteration(i, record)`` sees each iteration's history record as it is made (progress
+    bars). Pruning never leaves fewer than ``min_candidates``."""
+    step = CandidateStep(loaded, start, frame, config, min_candidates, settings)
     for iteration in range(config.iterations):
         record = step.iterate(rng)
         if on_iteration is not None:

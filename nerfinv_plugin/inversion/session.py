@@ -33,7 +33,7 @@ from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, read_c
 from nerfinv_plugin.inversion.tracker import Frame, StepRecord, Tracker, TrackerState
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.loading import load_model
-from nerfinv_plugin.model.render import set_sample_counts
+from nerfinv_plugin.model.render import RenderSettings, render_settings
 from nerfinv_plugin.results.folder import CONFIG, RunFolder
 from nerfinv_plugin.results.records import BankSummary, FrameResult, RunSummary, StepRow
 from nerfinv_plugin.results.summary import summarize
@@ -110,26 +110,25 @@ def attitude_deg(a: Tensor, b: Tensor) -> Tensor:
     return geodesic_deg(a[:, None, :3, :3].double(), b[None, :, :3, :3].to(a.device).double())
 
 
-def bound_rays(loaded: LoadedModel, centre: Tensor, render: RenderConfig) -> float | None:
-    """Bound rays to a sphere about ``centre`` (model frame) that holds the object, measured on the model
-    unless ``render`` gives its radius, and take the fewer samples that then suffice, unless ``render`` says
-    otherwise. Returns the radius in dataset metres when it was measured here."""
-    measured = None
+def bound_rays(loaded: LoadedModel, centre: Tensor, render: RenderConfig) -> tuple[RenderSettings, float | None]:
+    """The run's render settings: rays bounded to a sphere about ``centre`` (model frame) that holds the
+    object, measured on the model unless ``render`` gives its radius, and the fewer samples that then
+    suffice, unless ``render`` says otherwise. Returns them and the radius in dataset metres when it was
+    measured here; ``loaded`` is not changed."""
+    measured, sphere = None, None
     if render.bound:
         if render.target_radius_m is not None:
             radius = render.target_radius_m * loaded.dataparser_scale
         else:
             radius = object_radius(loaded, centre.to(loaded.device))
             measured = radius / loaded.dataparser_scale
-        loaded.target_sphere = (centre.to(loaded.device), radius)
+        sphere = (centre.to(loaded.device), radius)
     proposal, nerf = render.proposal_samples, render.nerf_samples
     sampler = getattr(loaded.model, "proposal_sampler", None)
     if render.bound and proposal is None and nerf is None and sampler is not None:
         proposal = BOUNDED_PROPOSAL_SAMPLES if len(sampler.num_proposal_samples_per_ray) == 2 else None
         nerf = BOUNDED_NERF_SAMPLES
-    if proposal is not None or nerf is not None:
-        set_sample_counts(loaded, proposal, nerf)
-    return measured
+    return render_settings(loaded, sphere, proposal, nerf), measured
 
 
 @dataclass
@@ -169,15 +168,15 @@ class Inversion:
             for frame, detection in zip(frames, detections):
                 frame.rank_region = None if detection is None else detection.around(RANK_MARGIN)
         centre = torch.as_tensor(loaded.point_to_model(np.asarray(c.target)), dtype=torch.float32)
-        radius = bound_rays(loaded, centre, c.render)
+        settings, radius = bound_rays(loaded, centre, c.render)
         if radius is not None:
             self.events.info(f"object radius {radius:.3g} m, read off the model's density (rays are bounded to it)")
         initializer = None
         if c.starts.source == "bank":
-            initializer = self._initializer(loaded, centre)
+            initializer = self._initializer(loaded, centre, settings)
         start = self._starts(loaded, sequence, centre, detections, initializer)
         tracker = Tracker(loaded, centre, c.optimizer, c.monte_carlo, c.sampling, c.pixels, c.eval_pixels,
-                          c.seed, _rotation_error)
+                          c.seed, _rotation_error, settings)
         self.folder.path.mkdir(parents=True, exist_ok=True)
         if not (self.folder.path / CONFIG).is_file():
             write_config(self.folder.path / CONFIG, dataclasses.replace(c, resume=None))
@@ -205,7 +204,8 @@ class Inversion:
                 record = StepRecord(k, estimate, state.last_loss, 0, StepResult(estimate[None], torch.zeros(1)))
             else:
                 if within == 0 and k > 0 and initializer is not None:
-                    reinitialized, watched = self._ask_bank(loaded, initializer, state, frames[k], detection)
+                    reinitialized, watched = self._ask_bank(loaded, settings, initializer, state, frames[k],
+                                                            detection)
                 record = tracker.step(state, frames[k], k, self.events.iteration)
             wall = time.perf_counter() - tic
             elapsed += wall
@@ -224,7 +224,7 @@ class Inversion:
             self.events.step(steps[-1])
             if within == c.steps_per_frame - 1:
                 self.events.frame(rows[-1])
-        summary = self.summary(rows, total // c.steps_per_frame, loaded, sequence, initializer)
+        summary = self.summary(rows, total // c.steps_per_frame, loaded, settings, sequence, initializer)
         self.folder.write_summary(summary)
         return summary
 
@@ -240,16 +240,17 @@ class Inversion:
             raise InversionError(f"--masks: {err}") from err
         return [detection_from_mask(mask) for mask in masks]
 
-    def _initializer(self, loaded: LoadedModel, centre: Tensor) -> Initializer:
+    def _initializer(self, loaded: LoadedModel, centre: Tensor, settings: RenderSettings) -> Initializer:
         """The view bank, from the cache or rendered now."""
-        initializer = Initializer.create(loaded, centre.numpy().astype(np.float64), self.config.bank, self.events.bank)
+        initializer = Initializer.create(loaded, settings, centre.numpy().astype(np.float64), self.config.bank,
+                                         self.events.bank)
         how = f"rendered in {initializer.build_s:.1f} s" if initializer.built else "read from the cache"
         self.events.info(f"view bank: {self.config.bank.views} views x {self.config.bank.in_plane} in-plane angles, "
                          f"{how} ({initializer.cache})")
         return initializer
 
-    def _ask_bank(self, loaded: LoadedModel, initializer: Initializer, state: TrackerState, frame: Frame,
-                  detection: Detection) -> tuple[bool, int]:
+    def _ask_bank(self, loaded: LoadedModel, settings: RenderSettings, initializer: Initializer, state: TrackerState,
+                  frame: Frame, detection: Detection) -> tuple[bool, int]:
         """Before a frame's first step, ask the bank about it. When the best candidate no longer puts the
         object where the frame shows it (lost), all of ``reinit_count`` hypotheses join the candidates;
         otherwise the best ``watch_count`` that are more than ``watch_deg`` from every candidate do (a
@@ -257,7 +258,7 @@ class Inversion:
         Returns (lost, hypotheses added)."""
         c = self.config
         if c.lost_iou > 0:
-            iou = silhouette_iou(loaded, state.candidates[0], frame.intrinsics, detection.mask)
+            iou = silhouette_iou(loaded, settings, state.candidates[0], frame.intrinsics, detection.mask)
             if iou < c.lost_iou:
                 found = initializer.poses(frame.image, detection, frame.intrinsics, c.reinit_count)
                 state.candidates = torch.cat([state.candidates, found])
@@ -362,8 +363,8 @@ class Inversion:
                                       translation_rel=error.translation_rel, score=error.score)
         return row
 
-    def summary(self, rows: list[FrameResult], total_frames: int, loaded: LoadedModel, sequence: Sequence,
-                initializer: Initializer | None = None) -> RunSummary:
+    def summary(self, rows: list[FrameResult], total_frames: int, loaded: LoadedModel, settings: RenderSettings,
+                sequence: Sequence, initializer: Initializer | None = None) -> RunSummary:
         bank = None
         if initializer is not None:
             bank = BankSummary(views=self.config.bank.views, entries=len(initializer.entries.views),
@@ -375,6 +376,6 @@ class Inversion:
             complete=len(rows) == total_frames, device=str(loaded.device), starts=self.config.starts.source,
             frames_without_object=sum(not r.object_found for r in rows),
             frames_reinitialized=sum(bool(r.reinitialized) for r in rows),
-            target_radius_m=None if loaded.target_sphere is None else
-            float(loaded.target_sphere[1]) / loaded.dataparser_scale,
+            target_radius_m=None if settings.target_sphere is None else
+            float(settings.target_sphere[1]) / loaded.dataparser_scale,
             bank=bank)

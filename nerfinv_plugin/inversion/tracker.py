@@ -25,7 +25,7 @@ from nerfinv_plugin.inversion.optimizer import (
 )
 from nerfinv_plugin.inversion.sampling import PixelSampler, Strategy
 from nerfinv_plugin.model.loaded import LoadedModel
-from nerfinv_plugin.model.render import Intrinsics
+from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings
 
 
 @dataclass
@@ -144,6 +144,8 @@ class Tracker:
     seed: int = 0
     error_fn: Callable[[Tensor, Tensor], Tensor] | None = None
     """``(poses [N, 4, 4], true pose [4, 4]) -> degrees [N]``, for histories when the truth is known."""
+    render: RenderSettings = AS_TRAINED
+    """How every render samples rays (``ns-invert``: :func:`nerfinv_plugin.inversion.session.bound_rays`)."""
 
     def begin(self, start: Tensor, seed: int | None = None) -> TrackerState:
         """The state before the first step, from the candidates ``start`` [N, 4, 4]."""
@@ -171,7 +173,8 @@ class Tracker:
         prepared = PreparedFrame.from_image(self.loaded, frame.image, frame.intrinsics, sampler, eval_pixels,
                                             self.centre, error_fn)
         result = optimize_candidates(self.loaded, state.candidates, prepared, optimizer, state.rng, on_iteration,
-                                     min_candidates=keep_count(mc, state.step, state.candidates.shape[0]))
+                                     min_candidates=keep_count(mc, state.step, state.candidates.shape[0]),
+                                     settings=self.render)
         alive = int(torch.isfinite(result.losses).sum())
         if alive == 0:
             raise FloatingPointError(f"every candidate's loss became NaN or infinite on frame "

@@ -26,11 +26,9 @@ class LoadedModel:
     """[4, 4]: dataset world -> model world, applied before ``dataparser_scale``."""
     dataparser_scale: float
     chunk_rays: int = 0
-    """Rays rendered per chunk under the memory budget; set when the model is loaded."""
-    target_sphere: tuple[torch.Tensor, float] | None = None
-    """(centre [3], radius) in the model frame of a sphere holding the whole target, when known: rays are
-    sampled only where they cross it, and rays that miss it are background without being rendered
-    (see :func:`nerfinv_plugin.model.render.bound_to_target`)."""
+    """Rays rendered per chunk under the memory budget as the model was trained; set when the model is
+    loaded (how a render samples rays is :class:`nerfinv_plugin.model.render.RenderSettings`, passed to
+    each call)."""
 
     def dataset_to_model(self, c2w: np.ndarray) -> np.ndarray:
         """Camera-to-world poses [..., 4, 4] (OpenGL axes) from the dataset frame into the model frame:

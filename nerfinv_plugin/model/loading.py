@@ -135,6 +135,7 @@ def load_model(config_path: Path, step: int | None = None, device: Device = "aut
     use_max_norm_contraction(model)
     model.to(torch_device).eval().requires_grad_(False)
     result = LoadedModel(model, config, checkpoint, int(saved.get("step", 0)), torch_device, transform, scale)
-    check_renders(result)  # first: for CUDA-only models, step callbacks already try to build CUDA kernels
+    # First: for CUDA-only models, step callbacks already try to build CUDA kernels.
+    result.chunk_rays = check_renders(result)
     restore_step_state(model, result.step)
     return result

@@ -13,7 +13,8 @@ Two entry points:
 
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -112,15 +113,86 @@ MIN_NEAR = 0.05
 not sample its own lens."""
 
 
-def bound_to_target(loaded: LoadedModel, bundle) -> Tensor | None:
-    """Limit each ray's samples to where it crosses ``loaded.target_sphere`` (setting the bundle's nears
+@dataclass(frozen=True, eq=False)
+class RenderSettings:
+    """How a render samples the loaded model's rays, passed to every render call: the model itself stays
+    as it was loaded. Built by :func:`render_settings` (``ns-invert``'s ``--render`` options resolve into one
+    in :func:`nerfinv_plugin.inversion.session.bound_rays`)."""
+
+    target_sphere: tuple[Tensor, float] | None = None
+    """(centre [3], radius) in the model frame of a sphere holding the whole target, when known: rays are
+    sampled only where they cross it, and rays that miss it are background without being rendered
+    (see :func:`bound_to_target`). ``None``: the model's near and far planes."""
+    proposal_samples: tuple[int, ...] | None = None
+    """Samples per ray of each proposal level (nerfacto and its kin). ``None``: as the model has them."""
+    nerf_samples: int | None = None
+    """Samples per ray of the final field. ``None``: as the model has them."""
+    chunk_rays: int | None = None
+    """Rays rendered per chunk. ``None``: ``loaded.chunk_rays``, measured when the model was loaded."""
+
+
+AS_TRAINED = RenderSettings()
+"""The model's own near/far planes, sample counts and chunk size."""
+
+
+def render_settings(loaded: LoadedModel, target_sphere: tuple[Tensor, float] | None = None,
+                    proposal: tuple[int, ...] | None = None, nerf: int | None = None) -> RenderSettings:
+    """Settings that bound rays to ``target_sphere`` and take ``proposal`` / ``nerf`` samples per ray
+    (``None``: as the model has them), checked against the model; when sample counts change, the chunk
+    size is measured again under them (it follows the memory a ray takes)."""
+    sphere = None if target_sphere is None else (target_sphere[0].to(loaded.device), target_sphere[1])
+    settings = RenderSettings(sphere, None if proposal is None else tuple(proposal), nerf)
+    if proposal is None and nerf is None:
+        return settings
+    sampler = getattr(loaded.model, "proposal_sampler", None)
+    if sampler is None:
+        raise ModelLoadError(f"{type(loaded.model).__name__} has no proposal sampler: its sample counts cannot be "
+                             "changed; leave --render.proposal-samples and --render.nerf-samples unset")
+    if proposal is not None and len(proposal) != len(sampler.num_proposal_samples_per_ray):
+        raise ModelLoadError(f"this model has {len(sampler.num_proposal_samples_per_ray)} proposal levels; "
+                             f"--render.proposal-samples got {len(proposal)} numbers")
+    return replace(settings, chunk_rays=check_renders(loaded, settings))
+
+
+def sample_counts(loaded: LoadedModel, settings: RenderSettings) -> tuple[tuple[int, ...], int] | None:
+    """(proposal samples per level, nerf samples) a render under ``settings`` takes; ``None`` for a model
+    without a proposal sampler."""
+    sampler = getattr(loaded.model, "proposal_sampler", None)
+    if sampler is None:
+        return None
+    proposal = settings.proposal_samples
+    return (tuple(sampler.num_proposal_samples_per_ray) if proposal is None else tuple(proposal),
+            sampler.num_nerf_samples_per_ray if settings.nerf_samples is None else settings.nerf_samples)
+
+
+@contextmanager
+def _sampling(loaded: LoadedModel, settings: RenderSettings) -> Iterator[None]:
+    """Within the block, the model's proposal sampler takes ``settings``' sample counts (nerfstudio reads
+    them off the sampler while it renders); on exit, also after an exception, it has its own again."""
+    if settings.proposal_samples is None and settings.nerf_samples is None:
+        yield
+        return
+    sampler = loaded.model.proposal_sampler
+    saved = sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray
+    try:
+        if settings.proposal_samples is not None:
+            sampler.num_proposal_samples_per_ray = tuple(settings.proposal_samples)
+        if settings.nerf_samples is not None:
+            sampler.num_nerf_samples_per_ray = settings.nerf_samples
+        yield
+    finally:
+        sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray = saved
+
+
+def bound_to_target(settings: RenderSettings, bundle) -> Tensor | None:
+    """Limit each ray's samples to where it crosses ``settings.target_sphere`` (setting the bundle's nears
     and fars, which nerfstudio's colliders then leave alone) and return the mask of rays that cross it;
     ``None`` when no sphere is set. The same number of samples then covers the target's depth, not the
     whole scene's, so fewer samples give the same image. The depths are not differentiated (nerfacto's
     sample depths are detached too); gradients reach the pose through the ray origins and directions."""
-    if loaded.target_sphere is None:
+    if settings.target_sphere is None:
         return None
-    centre, radius = loaded.target_sphere
+    centre, radius = settings.target_sphere
     with torch.no_grad():
         origins, directions = bundle.origins, bundle.directions
         along = ((centre.to(origins) - origins) * directions).sum(-1, keepdim=True)
@@ -146,42 +218,24 @@ def background_colour(loaded: LoadedModel) -> Tensor | None:
     return None
 
 
-def set_sample_counts(loaded: LoadedModel, proposal: tuple[int, ...] | None, nerf: int | None) -> None:
-    """Change how many samples a proposal-sampled model (nerfacto and its kin) takes per ray at render
-    time: with rays bounded to the target, a fraction of the training counts covers the same depth."""
-    sampler = getattr(loaded.model, "proposal_sampler", None)
-    if sampler is None:
-        raise ModelLoadError(f"{type(loaded.model).__name__} has no proposal sampler: its sample counts cannot be "
-                             "changed; leave --render.proposal-samples and --render.nerf-samples unset")
-    if proposal is not None:
-        if len(proposal) != len(sampler.num_proposal_samples_per_ray):
-            raise ModelLoadError(f"this model has {len(sampler.num_proposal_samples_per_ray)} proposal levels; "
-                                 f"--render.proposal-samples got {len(proposal)} numbers")
-        sampler.num_proposal_samples_per_ray = tuple(proposal)
-    if nerf is not None:
-        sampler.num_nerf_samples_per_ray = nerf
-    check_renders(loaded)  # the chunk size follows the memory a ray now takes
-
-
 Rays = slice | Tensor
 """Which of the N * P flat rays a chunk holds: a slice, or indices when rays were skipped."""
 
 
 def render_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
-                  chunk_rays: int | None = None) -> Iterator[tuple[Rays, RenderOutput]]:
-    """Render ``ray_bundle(...)`` in chunks of at most ``chunk_rays`` rays (default: the model's memory
-    budget). Yields ``(rays, outputs for them)``, ``rays`` indexing the N * P flat rays; every ray is
-    accounted for. With a target sphere set, the rays that miss it come last, as one chunk of background
-    colour that does not depend on the pose."""
-    if chunk_rays is None:
-        chunk_rays = loaded.chunk_rays or check_renders(loaded)
+                  settings: RenderSettings = AS_TRAINED) -> Iterator[tuple[Rays, RenderOutput]]:
+    """Render ``ray_bundle(...)`` under ``settings`` in chunks of at most ``settings.chunk_rays`` rays.
+    Yields ``(rays, outputs for them)``, ``rays`` indexing the N * P flat rays; every ray is accounted for.
+    With a target sphere set, the rays that miss it come last, as one chunk of background colour that
+    does not depend on the pose."""
+    chunk_rays = settings.chunk_rays if settings.chunk_rays is not None else loaded.chunk_rays or check_renders(loaded)
     if chunk_rays < 1:
         raise ValueError(f"chunk_rays must be at least 1, got {chunk_rays}")
     if isinstance(loaded.model, SplatfactoModel):
         yield from _splat_chunks(loaded, c2w, intrinsics, pixels)
         return
     bundle = ray_bundle(loaded, c2w.to(loaded.device), intrinsics, pixels)
-    hits = bound_to_target(loaded, bundle)
+    hits = bound_to_target(settings, bundle)
     background = background_colour(loaded)
     if hits is None or background is None or bool(hits.all()):
         order: Tensor | None = None
@@ -192,7 +246,8 @@ def render_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixe
         bundle = bundle[order]
     for start in range(0, rendered, chunk_rays):
         part = slice(start, min(start + chunk_rays, rendered))
-        outputs = loaded.model(bundle[part])
+        with _sampling(loaded, settings):
+            outputs = loaded.model(bundle[part])
         rgb = _pick(outputs, "rgb")
         if rgb is None:
             raise RuntimeError(f"{type(loaded.model).__name__} returned no rgb output (keys: {sorted(outputs)})")
@@ -222,11 +277,12 @@ def _splat_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics,
 
 
 def render(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
-           chunk_rays: int | None = None) -> RenderOutput:
+           settings: RenderSettings = AS_TRAINED) -> RenderOutput:
     """Colours (and accumulation and depth where the model has them) of ``pixels`` [P, 2] (row, col) from
-    every pose in ``c2w`` [N, 3|4, 4]: ``rgb`` is [N, P, 3]. Differentiable with respect to ``c2w``."""
+    every pose in ``c2w`` [N, 3|4, 4] under ``settings``: ``rgb`` is [N, P, 3]. Differentiable with respect
+    to ``c2w``."""
     n, p = as_3x4(c2w).shape[0], pixels.shape[0]
-    parts = list(render_chunks(loaded, c2w, intrinsics, pixels, chunk_rays))
+    parts = list(render_chunks(loaded, c2w, intrinsics, pixels, settings))
 
     def join(field: str, channels: int) -> Tensor | None:
         values = [getattr(out, field) for _, out in parts]
@@ -242,17 +298,19 @@ def render(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Ten
     return RenderOutput(join("rgb", 3), join("accumulation", 1), join("depth", 1))
 
 
-def render_image(loaded: LoadedModel, c2w_model: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
-    """Full image [H, W, 3] in [0, 1] at one pose [4, 4], without gradients: for evaluation and plots."""
+def render_image(loaded: LoadedModel, c2w_model: np.ndarray, intrinsics: Intrinsics,
+                 settings: RenderSettings = AS_TRAINED) -> np.ndarray:
+    """Full image [H, W, 3] in [0, 1] at one pose [4, 4] under ``settings``, without gradients: for
+    evaluation and plots."""
     rows, cols = torch.meshgrid(torch.arange(intrinsics.height), torch.arange(intrinsics.width), indexing="ij")
     pixels = torch.stack([rows.reshape(-1), cols.reshape(-1)], 1)
     c2w = torch.as_tensor(np.asarray(c2w_model)[None], dtype=torch.float32)
     with torch.no_grad():
-        rgb = render(loaded, c2w, intrinsics, pixels).rgb
+        rgb = render(loaded, c2w, intrinsics, pixels, settings).rgb
     return rgb.reshape(intrinsics.height, intrinsics.width, 3).clamp(0, 1).cpu().numpy()
 
 
-def bytes_per_ray(loaded: LoadedModel, probe_rays: int = 64) -> float:
+def bytes_per_ray(loaded: LoadedModel, settings: RenderSettings = AS_TRAINED, probe_rays: int = 64) -> float:
     """Memory one ray holds until its backward pass: the tensors autograd saves, counted while rendering
     a probe batch whose poses require gradients. Device-agnostic, unlike allocator statistics."""
     saved = 0
@@ -270,7 +328,7 @@ def bytes_per_ray(loaded: LoadedModel, probe_rays: int = 64) -> float:
     rows, cols = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")
     pixels = torch.stack([rows.reshape(-1), cols.reshape(-1)], 1)
     with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-        out = render(loaded, c2w, intrinsics, pixels, chunk_rays=side * side).rgb
+        out = render(loaded, c2w, intrinsics, pixels, replace(settings, chunk_rays=side * side)).rgb
     return (saved + out.numel() * out.element_size()) / (side * side)
 
 
@@ -292,21 +350,21 @@ CUDA_ONLY = {"NGPModel": "nerfacc's CUDA ray marching", "SplatfactoModel": "gspl
 tries to compile CUDA extensions, for over a minute, before failing)."""
 
 
-def check_renders(loaded: LoadedModel) -> int:
-    """Render a probe batch with gradients, size ``loaded.chunk_rays`` from the memory budget, and return
-    it. A model that cannot render on its device (a CUDA-only kernel on a CPU, say) fails here with one
-    line naming the model and the device instead of deep inside the first iteration."""
+def check_renders(loaded: LoadedModel, settings: RenderSettings = AS_TRAINED) -> int:
+    """Render a probe batch under ``settings`` with gradients and return the chunk size (rays) the memory
+    budget allows under them; nothing is written to ``loaded``. A model that cannot render on its device
+    (a CUDA-only kernel on a CPU, say) fails here with one line naming the model and the device instead
+    of deep inside the first iteration."""
     name = type(loaded.model).__name__
     for base in type(loaded.model).__mro__:
         if base.__name__ in CUDA_ONLY and loaded.device.type != "cuda":
             raise ModelLoadError(f"{name} ({loaded.config.method_name}) cannot render on {loaded.device}: it needs "
                                  f"{CUDA_ONLY[base.__name__]}; use a CUDA machine or a nerfacto model")
     try:
-        per_ray = bytes_per_ray(loaded)
+        per_ray = bytes_per_ray(loaded, settings)
     except Exception as err:  # noqa: BLE001 - any failure here means the same thing to the user
         first = (str(err).splitlines() or [""])[0][:200]
         raise ModelLoadError(f"{name} ({loaded.config.method_name}) cannot render on {loaded.device}: "
                              f"{type(err).__name__}: {first}") from err
     # Twice the saved tensors: forward transients live alongside them for a moment.
-    loaded.chunk_rays = int(max(1, min(MAX_CHUNK_RAYS, memory_budget_bytes(loaded.device) // (2 * per_ray))))
-    return loaded.chunk_rays
+    return int(max(1, min(MAX_CHUNK_RAYS, memory_budget_bytes(loaded.device) // (2 * per_ray))))
