@@ -61,7 +61,7 @@ def screw_runs(loaded: LoadedModel, observed: ObservedFrame, candidates: int, it
             tracker = Tracker(loaded, observed.centre, OptimizerConfig(iterations=iterations, screw_origin=origin),
                               MonteCarloConfig(), seed=seed)
             began = time.perf_counter()
-            record = tracker.run([frame], start, steps=1)[0]
+            record = tracker.run([frame], start)[0]
             seconds = time.perf_counter() - began
             runs.append(ScrewRun(origin, seed, start_deg, float(rotation_error_deg(record.estimate, truth)),
                                  float(rotation_error_deg(record.result.c2w, truth).median()), seconds))

@@ -1,9 +1,10 @@
 """One ``ns-invert`` run: load the model and the sequence, choose starting poses, run the Monte Carlo
 tracker frame after frame, and write every result into the run folder as soon as it exists.
 
-The schedule: frame ``k`` gets ``steps_per_frame`` consecutive steps. In ``trajectory`` mode the candidates
-carry over from frame to frame (the thesis' method); in ``fixed`` mode every frame starts again from the
-starting poses (parallel iNeRF on each image alone, the baseline). After every step the whole state is
+The schedule is the tracker's (:meth:`Tracker.schedule`): frame ``k`` gets ``steps_per_frame`` consecutive
+steps. In ``trajectory`` mode the candidates carry over from frame to frame (the thesis' method); in
+``fixed`` mode every frame starts again from the starting poses (parallel iNeRF on each image alone, the
+baseline). After every step the whole state is
 saved, so a run stopped anywhere (Ctrl-C, a crash, a full disk) resumes at the step it lost and ends with
 the numbers an uninterrupted run would have given.
 """
@@ -182,20 +183,18 @@ class Inversion:
             write_config(self.folder.path / CONFIG, dataclasses.replace(c, resume=None))
         saved = self.folder.load()
         if saved is None:
-            rows, steps, elapsed, state = [], [], 0.0, tracker.begin(start)
+            rows, steps, elapsed, resumed = [], [], 0.0, None
         else:
             rows, steps, elapsed = saved.rows, saved.steps, saved.elapsed_s
-            state = TrackerState.from_state_dict(saved.tracker)
+            resumed = TrackerState.from_state_dict(saved.tracker)
             self.folder.export(rows, steps)  # catch up if the last run stopped between the two writes
         total = len(frames) * c.steps_per_frame
         self.events.begin(total, len(steps), c.optimizer.iterations)
         frame_time = sum(s.wall_time_s for s in steps if s.index == len(rows))
-        for step_index in range(len(steps), total):
-            k, within = divmod(step_index, c.steps_per_frame)
+        for step_index, k, within, state in tracker.schedule(len(frames), start, c.steps_per_frame, resumed,
+                                                              len(steps)):
             tic = time.perf_counter()
             detection = detections[k]
-            if within == 0 and c.monte_carlo.mode == "fixed":
-                state = tracker.begin(start, seed=c.seed + k)
             reinitialized, watched = False, 0
             if detection is None:
                 self.events.warn(f"frame {k} ({frames[k].name}): no object found (nothing bright enough on the "

@@ -1,13 +1,15 @@
 """The Monte Carlo schedule along a trajectory (thesis section 3.4).
 
 Each Monte Carlo step optimizes the current candidates against one image, ranks them, and keeps the
-best few; each kept pose spawns perturbed copies, and kept plus spawned poses start the next step. In
-``trajectory`` mode the next step already looks at the next frame (the thesis' contribution: the search
-narrows while the target moves); in ``fixed`` mode every step looks at the same image (parallel iNeRF).
-The best candidate of a step is the estimate for its frame.
+best few; each kept pose spawns perturbed copies, and kept plus spawned poses start the next step. Frame
+``k`` gets ``steps_per_frame`` consecutive steps (:meth:`Tracker.schedule`, the one step loop, which
+``ns-invert`` drives too). In ``trajectory`` mode the candidates carry over to the next frame (the thesis'
+contribution: the search narrows while the target moves); in ``fixed`` mode every frame starts again from
+the starting poses and is inverted alone (parallel iNeRF on each image, the baseline). The best candidate
+of a frame's last step is the estimate for that frame.
 """
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -33,7 +35,9 @@ class MonteCarloConfig:
     """How candidates are kept and spawned between steps."""
 
     mode: Literal["trajectory", "fixed"] = "trajectory"
-    """trajectory: each step takes the next frame; fixed: every step uses the first frame."""
+    """trajectory: the candidates carry over from frame to frame (the thesis' method); fixed: every frame
+    starts again from the starting poses, alone (parallel iNeRF on each image, the baseline), its seed the
+    run's plus the frame's index and its keep schedule from the first step."""
     keep: tuple[int, ...] = (3, 3)
     """Candidates kept after each step; the last entry repeats. 3 at every step tracked better than the
     thesis' Lego runs' 3, then 1 (docs/benchmarks.md: 29/30 against 27/30 runs under 3 degrees on the toy,
@@ -199,21 +203,26 @@ class Tracker:
         state.eval_pixels = eval_pixels
         return record
 
-    def run(self, frames: Sequence[Frame], start: Tensor, steps: int | None = None,
-            on_step: Callable[[StepRecord], None] | None = None) -> list[StepRecord]:
-        """Track ``frames`` from the candidates ``start`` [N, 4, 4]. Trajectory mode runs one step per
-        frame (``steps`` limits it); fixed mode runs ``steps`` steps on ``frames[0]``. ``on_step`` sees each
-        record as soon as it exists (to write results as they come)."""
-        trajectory = self.monte_carlo.mode == "trajectory"
-        total = min(len(frames), steps or len(frames)) if trajectory else (steps or 1)
-        state = self.begin(start)
-        records = []
-        for step in range(total):
-            index = step if trajectory else 0
-            records.append(self.step(state, frames[index], index))
-            if on_step is not None:
-                on_step(records[-1])
-        return records
+    def schedule(self, frames: int, start: Tensor, steps_per_frame: int = 1, state: TrackerState | None = None,
+                 done: int = 0) -> Iterator[tuple[int, int, int, TrackerState]]:
+        """The one step loop: ``(step index, frame index, step within the frame, state)`` for each of the
+        ``frames * steps_per_frame`` steps from step ``done`` on (a resumed run passes its saved ``state``),
+        the caller taking the step (:meth:`step`) before asking for the next. Frame ``k`` gets steps
+        ``k * steps_per_frame`` to ``(k + 1) * steps_per_frame - 1``. In fixed mode each frame's first
+        step starts from ``start`` again, seeded ``seed + k``."""
+        if state is None:
+            state = self.begin(start)
+        for step_index in range(done, frames * steps_per_frame):
+            k, within = divmod(step_index, steps_per_frame)
+            if within == 0 and self.monte_carlo.mode == "fixed":
+                state = self.begin(start, seed=self.seed + k)
+            yield step_index, k, within, state
+
+    def run(self, frames: Sequence[Frame], start: Tensor, steps_per_frame: int = 1) -> list[StepRecord]:
+        """Every step of :meth:`schedule` over ``frames`` from the candidates ``start`` [N, 4, 4], without
+        the run folder, detections or bank of ``ns-invert`` (tests, benchmarks)."""
+        return [self.step(state, frames[k], k) for _, k, _, state in self.schedule(len(frames), start,
+                                                                                   steps_per_frame)]
 
 
 def _decayed(config: OptimizerConfig, step: int) -> OptimizerConfig:
