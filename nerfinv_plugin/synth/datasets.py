@@ -8,7 +8,6 @@
 """
 
 import json
-import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +17,7 @@ import mitsuba as mi
 import numpy as np
 
 from nerfinv_plugin.geometry.frames import object_to_camera_to_c2w, opencv_to_opengl, rotmat_to_quat_wxyz
+from nerfinv_plugin.results.atomic import write_atomic
 from nerfinv_plugin.synth.render import (
     PinholeCamera,
     distort_image,
@@ -40,11 +40,9 @@ Progress = Callable[[], None]
 
 
 def write_json_atomic(path: Path, data: object) -> None:
-    """Write JSON through a temporary file and a rename, so a crash never leaves half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
+    """Write ``data`` as indented JSON with the project's one atomic writer (a crash never leaves half a
+    file)."""
+    write_atomic(path, json.dumps(data, indent=2))
 
 
 def write_image(path: Path, image: np.ndarray) -> None:
