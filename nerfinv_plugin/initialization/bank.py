@@ -115,7 +115,8 @@ class ViewBank:
     focal: float
     """Focal length of the renders, pixels (principal point at the image centre)."""
     build_s: float = 0.0
-    """Seconds the renders took (0 when read from the cache)."""
+    """Seconds the renders took when the bank was built (kept in the cache file, so a bank read from the
+    cache reports the time it once took)."""
 
     def save(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
