@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from nerfinv_plugin.data.sequences import Sequence, read_sequence, shirt_trajectory_poses
-from nerfinv_plugin.geometry.errors import label_error
+from nerfinv_plugin.geometry.errors import label_error, rotation_error_deg
 from nerfinv_plugin.geometry.frames import c2w_opencv_to_label, label_to_c2w_opencv, opencv_to_opengl
 from nerfinv_plugin.geometry.se3 import geodesic_deg
 from nerfinv_plugin.initialization.detect import Detection, MaskError, detection_from_mask, find_object, read_masks
@@ -101,11 +101,6 @@ def shirt_label_pool(c: InvertConfig) -> np.ndarray:
     return np.array(pool)
 
 
-def _rotation_error(poses: Tensor, truth: Tensor) -> Tensor:
-    """Degrees between camera attitudes; the same in the model and the dataset frame (one rotation apart)."""
-    return geodesic_deg(poses[:, :3, :3], truth[None, :3, :3].expand_as(poses[:, :3, :3]).to(poses))
-
-
 def attitude_deg(a: Tensor, b: Tensor) -> Tensor:
     """Degrees between every attitude of ``a`` [N, 4, 4] and every one of ``b`` [M, 4, 4]: [N, M]."""
     return geodesic_deg(a[:, None, :3, :3].double(), b[None, :, :3, :3].to(a.device).double())
@@ -177,7 +172,7 @@ class Inversion:
             initializer = self._initializer(loaded, centre, settings)
         start = self._starts(loaded, sequence, centre, detections, initializer)
         tracker = Tracker(loaded, centre, c.optimizer, c.monte_carlo, c.sampling, c.pixels, c.eval_pixels,
-                          c.seed, _rotation_error, settings)
+                          c.seed, rotation_error_deg, settings)
         self.folder.path.mkdir(parents=True, exist_ok=True)
         if not (self.folder.path / CONFIG).is_file():
             write_config(self.folder.path / CONFIG, dataclasses.replace(c, resume=None))
