@@ -59,6 +59,13 @@ def _replaced(config: Any, option: str, value: Any) -> Any:
     return replace(config, **{name: _replaced(getattr(config, name), rest, value) if rest else value})
 
 
+def _value(config: Any, option: str) -> Any:
+    """The dotted ``option`` of ``config``."""
+    for part in option.split("."):
+        config = getattr(config, part.replace("-", "_"))
+    return config
+
+
 def _cases(valid: bool) -> list[Any]:
     cases = []
     for option, hint in numeric_options(InvertConfig).items():
@@ -80,12 +87,16 @@ def test_an_invalid_value_is_refused_in_one_line_naming_the_option(option, value
 
 @pytest.mark.parametrize(("option", "value"), _cases(valid=True))
 def test_zero_and_minus_one_pass_where_they_mean_something(option, value):
-    validate(_replaced(InvertConfig(), option, value))
+    config = _replaced(InvertConfig(), option, value)
+    validate(config)  # raises SettingsError if the rule refuses the value
+    assert _value(config, option) == value  # and the value validated was really the option's
 
 
 @pytest.mark.parametrize("option", [o for o, hint in numeric_options(InvertConfig).items() if _inner(hint) != hint])
 def test_an_optional_option_may_stay_unset(option):
-    validate(_replaced(InvertConfig(), option, None))
+    config = _replaced(InvertConfig(), option, None)
+    validate(config)  # raises SettingsError if the rule refuses None
+    assert _value(config, option) is None
 
 
 @pytest.mark.parametrize(("config", "rules"), COMMANDS, ids=lambda c: type(c).__name__)
