@@ -65,6 +65,9 @@ class IterationRecord:
     error_deg: np.ndarray | None = None
     """[N] rotation error of every candidate (degrees) at the poses the loss was measured at, when the
     truth is known."""
+    c2w: np.ndarray | None = None
+    """[N, 4, 4] the poses the loss was measured at (model frame): what the viewer and the run's candidate
+    trail draw."""
 
 
 @dataclass
@@ -197,7 +200,7 @@ class CandidateStep:
         self.scheduler.step()
         losses = torch.where(active, losses, torch.inf)
         error = None if self.frame.error_fn is None else self.frame.error_fn(c2w.detach()).cpu().numpy()
-        record = IterationRecord(losses.cpu().numpy(), error)
+        record = IterationRecord(losses.cpu().numpy(), error, c2w.detach().cpu().numpy())
         self.history.append(record)
         self._after(losses)
         return record
