@@ -65,6 +65,14 @@ class Events:
     bank: Callable[[int], Callable[[int], None]] = lambda views: (lambda done: None)
     """Called before the view bank is rendered with its number of views; returns what to call after each
     batch with the number of views it rendered."""
+    loaded: Callable[[LoadedModel, list[Frame], RenderSettings], None] = lambda loaded, frames, settings: None
+    """Called once the model and the frames are loaded and the run folder exists, with the render settings
+    of the run (the viewer draws the scene and renders the best candidate with them)."""
+    step_begin: Callable[[int, int], None] = lambda step, frame: None
+    """Called before each Monte Carlo step with its index and its frame's index (the viewer shows that frame)."""
+    ranked: Callable[[int, StepRecord], None] = lambda step, record: None
+    """Called after each Monte Carlo step, once it is saved, with its index and record: the candidates'
+    final poses and losses, and how many the step kept (the candidate trail and the viewer)."""
 
 
 def sequence_name(spec: str) -> str:
@@ -176,6 +184,7 @@ class Inversion:
         self.folder.path.mkdir(parents=True, exist_ok=True)
         if not (self.folder.path / CONFIG).is_file():
             write_config(self.folder.path / CONFIG, dataclasses.replace(c, resume=None))
+        self.events.loaded(loaded, frames, settings)
         saved = self.folder.load()
         if saved is None:
             rows, steps, elapsed, resumed = [], [], 0.0, None
@@ -188,6 +197,7 @@ class Inversion:
         frame_time = sum(s.wall_time_s for s in steps if s.index == len(rows))
         for step_index, k, within, state in tracker.schedule(len(frames), start, c.steps_per_frame, resumed,
                                                               len(steps)):
+            self.events.step_begin(step_index, k)
             tic = time.perf_counter()
             detection = detections[k]
             reinitialized, watched = False, 0
@@ -215,6 +225,7 @@ class Inversion:
                                             any(s.reinitialized for s in own), sum(s.bank_added for s in own)))
                 frame_time = 0.0
             self.folder.save(rows, steps, state.state_dict(), elapsed)
+            self.events.ranked(step_index, record)
             self.events.step(steps[-1])
             if within == c.steps_per_frame - 1:
                 self.events.frame(rows[-1])
