@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from nerfinv_plugin.geometry.se3 import exp_se3, log_se3, perturb_about
+from nerfinv_plugin.inversion.motion_filter import MotionFilter, MotionFilterConfig, MotionState, PoseMeasurement
 from nerfinv_plugin.inversion.optimizer import (
     IterationRecord,
     OptimizerConfig,
@@ -53,9 +54,13 @@ class MonteCarloConfig:
     """Each axis of a spawned copy's shift is drawn from [-spawn_trans_m, spawn_trans_m] (dataset metres)."""
     reset_lr: bool = True
     """Start every step at the initial learning rate (thesis fig. 5.2); otherwise continue the decay."""
-    motion_prior: bool = False
-    """Trajectory mode: move the kept poses by the last frame-to-frame motion of the estimate (constant
-    velocity) before spawning, instead of spawning around where the target was."""
+    motion: Literal["none", "constant-velocity", "filter"] = "none"
+    """Trajectory mode: where the next frame's candidates start. none: where this frame's kept candidates
+    are; constant-velocity: moved once more by the last frame-to-frame motion of the estimate (amplifies
+    the estimates' noise, docs/benchmarks.md); filter: moved together so that the best lands where a Kalman
+    filter on SE(3) of the pose about the target predicts the next frame (motion-filter options)."""
+    motion_filter: MotionFilterConfig = field(default_factory=MotionFilterConfig)
+    """The filter of ``motion filter``."""
 
 
 def keep_count(config: MonteCarloConfig, step: int, candidates: int) -> int:
@@ -113,15 +118,25 @@ class TrackerState:
     last_estimate: Tensor | None = None
     last_loss: float = float("inf")
     previous_estimate: Tensor | None = None
-    """Estimate of the frame before ``last_frame``, for the motion prior."""
+    """Estimate of the frame before ``last_frame``, for ``motion constant-velocity``."""
     eval_pixels: Tensor | None = None
     """The ranking pixels of ``last_frame``: steps on one frame rank on the same pixels."""
+    carried: int = 0
+    """How many of ``candidates``, from the front, the last step left (kept and spawned); any after them
+    joined since (bank hypotheses of the next frame)."""
+    motion: MotionState | None = None
+    """``motion filter``: the filter after the estimate of ``last_frame``."""
+    motion_before: MotionState | None = None
+    """``motion filter``: the filter's prediction for ``last_frame``, before its estimate: another step on
+    that frame measures it again from here, so a frame counts once however many steps it gets."""
 
     def state_dict(self) -> dict:
         return {"step": self.step, "candidates": self.candidates, "rng": self.rng.bit_generator.state,
                 "generator": self.generator.get_state(), "last_frame": self.last_frame,
                 "last_estimate": self.last_estimate, "last_loss": self.last_loss,
-                "previous_estimate": self.previous_estimate, "eval_pixels": self.eval_pixels}
+                "previous_estimate": self.previous_estimate, "eval_pixels": self.eval_pixels,
+                "carried": self.carried, "motion": None if self.motion is None else self.motion.to_dict(),
+                "motion_before": None if self.motion_before is None else self.motion_before.to_dict()}
 
     @classmethod
     def from_state_dict(cls, state: dict) -> "TrackerState":
@@ -129,8 +144,11 @@ class TrackerState:
         rng.bit_generator.state = state["rng"]
         generator = torch.Generator()
         generator.set_state(state["generator"])
+        motion, before = state.get("motion"), state.get("motion_before")  # absent in runs saved before the filter
         return cls(state["step"], state["candidates"], rng, generator, state["last_frame"], state["last_estimate"],
-                   state["last_loss"], state["previous_estimate"], state["eval_pixels"])
+                   state["last_loss"], state["previous_estimate"], state["eval_pixels"], state.get("carried", 0),
+                   None if motion is None else MotionState.from_dict(motion),
+                   None if before is None else MotionState.from_dict(before))
 
 
 @dataclass
@@ -165,6 +183,8 @@ class Tracker:
         mc = self.monte_carlo
         sampler = PixelSampler(self.sampling, self.pixels).prepare(frame.image)
         same_frame = state.last_frame == frame_index
+        if mc.mode == "trajectory" and mc.motion == "filter" and not same_frame:
+            self._predict(state, frame_index)
         if same_frame:
             eval_pixels = state.eval_pixels
         else:
@@ -191,17 +211,50 @@ class Tracker:
         kept_count = keep_count(mc, state.step, alive)
         kept = result.c2w[order[:kept_count]].cpu()
         previous = state.previous_estimate if same_frame else state.last_estimate
-        if mc.mode == "trajectory" and mc.motion_prior and previous is not None:
+        if mc.mode == "trajectory" and mc.motion == "constant-velocity" and previous is not None:
             kept = _constant_velocity(previous, best) @ kept
+        if mc.mode == "trajectory" and mc.motion == "filter":
+            self._measure(state, best, kept, result.losses[order[:kept_count]].cpu())
         spawned = perturb_about(kept.repeat_interleave(mc.spawn, 0), self.centre.cpu(), mc.spawn_rot_deg,
                                 mc.spawn_trans_m * self.loaded.dataparser_scale, state.generator)
         record = StepRecord(frame_index, best, best_loss, state.candidates.shape[0], result, kept_count)
         state.previous_estimate = previous
         state.step += 1
         state.candidates = torch.cat([kept, spawned])
+        state.carried = state.candidates.shape[0]
         state.last_frame, state.last_estimate, state.last_loss = frame_index, best, best_loss
         state.eval_pixels = eval_pixels
         return record
+
+    def _motion_filter(self) -> tuple[MotionFilter, Tensor]:
+        """The filter in model units, and the transform [4, 4] float64 from the model frame to the target's."""
+        to_target = torch.eye(4, dtype=torch.float64)
+        to_target[:3, 3] = -self.centre.double().cpu()
+        return MotionFilter(self.monte_carlo.motion_filter, self.loaded.dataparser_scale), to_target
+
+    def _predict(self, state: TrackerState, frame_index: int) -> None:
+        """Before the first step on ``frame_index``: the filter's prediction for it, and the candidates the
+        last step carried over moved together (one rigid motion) so that the last frame's estimate lands on
+        it. Candidates that joined since (bank hypotheses of this frame) stay where they are."""
+        state.motion_before = None
+        if state.motion is None:
+            return
+        frames = frame_index - state.last_frame
+        assert frames >= 1, (frame_index, state.last_frame)  # the schedule only goes forward
+        motion_filter, to_target = self._motion_filter()
+        state.motion_before = motion_filter.predict(state.motion, frames)
+        move = torch.linalg.inv(to_target) @ state.motion_before.pose @ torch.linalg.inv(state.last_estimate.double())
+        carried = state.candidates[:state.carried].double()
+        state.candidates = torch.cat([(move @ carried).float(), state.candidates[state.carried:]])
+
+    def _measure(self, state: TrackerState, best: Tensor, kept: Tensor, losses: Tensor) -> None:
+        """The filter told the frame's estimate ``best`` [4, 4], its uncertainty from the ``kept`` candidates
+        [K, 4, 4] and their ``losses`` [K]; from the frame's prediction, so that a frame measured again by a
+        later step on it counts once."""
+        motion_filter, to_target = self._motion_filter()
+        best_t = to_target @ best.double()
+        covariance = motion_filter.fit_covariance(best_t, to_target @ kept.double(), losses)
+        state.motion, _ = motion_filter.update(state.motion_before, PoseMeasurement(best_t, covariance))
 
     def schedule(self, frames: int, start: Tensor, steps_per_frame: int = 1, state: TrackerState | None = None,
                  done: int = 0) -> Iterator[tuple[int, int, int, TrackerState]]:

@@ -138,6 +138,15 @@ INVERT_RULES: dict[str, Rule] = {
     "monte-carlo.spawn": whole(0),  # 0: the kept candidates go on alone
     "monte-carlo.spawn-rot-deg": number(at_least=0, at_most=180),
     "monte-carlo.spawn-trans-m": number(at_least=0),
+    # the filter's noises are standard deviations of Gaussians: 0 would make a covariance singular
+    "monte-carlo.motion-filter.measurement-deg": number(above=0, at_most=180),
+    "monte-carlo.motion-filter.measurement-m": number(above=0),
+    "monte-carlo.motion-filter.accel-deg": number(above=0, at_most=180),
+    "monte-carlo.motion-filter.accel-m": number(above=0),
+    "monte-carlo.motion-filter.initial-rate-deg": number(above=0, at_most=180),
+    "monte-carlo.motion-filter.initial-speed-m": number(above=0),
+    "monte-carlo.motion-filter.gate-probability": number(above=0, below=1),  # 1: an infinite gate
+    "monte-carlo.motion-filter.max-rejections": whole(0),  # 0: a rejected estimate restarts the filter at once
 }
 """The rule of every numeric option of ``ns-invert`` (:class:`InvertConfig` and the configs nested in it)."""
 
