@@ -168,6 +168,7 @@ def test_cli_help_documents_every_option():
     text = subprocess.run(["ns-invert-synth", "--help"], capture_output=True, text=True, check=True).stdout
     for option in ("--out", "--scene", "--seed", "--spp", "--training.train-views", "--training.range-m",
                    "--trajectory.kinds", "--trajectory.frame-spacing-s", "--trajectory.range-m",
-                   "--trajectory.spin-rate-deg-s", "--trajectory.width", "--trajectory.distortion"):
+                   "--trajectory.spin-rate-deg-s", "--trajectory.width", "--trajectory.distortion",
+                   "--trajectory.lightbox"):
         assert option in text, option
     assert "SHIRT" in text

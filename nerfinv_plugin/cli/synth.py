@@ -18,6 +18,7 @@ from nerfinv_plugin.synth.datasets import (
     write_shirt_trajectories,
     write_training_set,
 )
+from nerfinv_plugin.synth.lightbox_domain import write_lightbox_domain
 from nerfinv_plugin.synth.scenes import SceneName
 from nerfinv_plugin.synth.speedplus import write_speedplus
 from nerfinv_plugin.synth.trajectories import TrajectoryKind, TrajectoryMotion, TrajectorySpec
@@ -43,6 +44,11 @@ class TrajectoryOptions(TrajectoryMotion):
     distortion: bool = False
     """Pass the images through the SPEED+ lens distortion written in camera.json, as a real camera
     would, so that a loader must undistort them. Without it, camera.json has zero distCoeffs."""
+    lightbox: bool = False
+    """Also render each trajectory's lightbox-like domain into roeN/lightbox/images (labelled by the same
+    roeN.json): a simulated lab, with the lamp turned 40 degrees from the training sun and warmer, no
+    earthshine, and a lab camera (exposure, gamma 2.0, bloom, defocus, vignette, read and shot noise,
+    JPEG 75), all fixed by issue 13 (docs/synthetic-data.md). Train on the synthetic views only."""
 
 
 @dataclass
@@ -98,7 +104,7 @@ class Synth:
         specs = [TrajectorySpec.of(kind, t) for kind in t.kinds]
         n_train = self.training.train_views + self.training.val_views + self.training.test_views
         sp = self.speedplus
-        total = n_train + t.num_frames * len(specs) + sp.views
+        total = n_train + t.num_frames * len(specs) * (2 if t.lightbox else 1) + sp.views
         columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
         with Progress(*columns, console=console) as progress:
             task = progress.add_task(f"rendering {self.scene}", total=total)
@@ -109,8 +115,11 @@ class Synth:
                     write_camera_images(self.out, self.out / "rgb")
             if specs:
                 camera = speedplus_like_camera(t.width, t.height)
-                write_shirt_trajectories(self.out, self.scene, specs, camera, t.distortion, self.seed,
-                                         self.spp, step)
+                rendered = write_shirt_trajectories(self.out, self.scene, specs, camera, t.distortion,
+                                                    self.seed, self.spp, step)
+                if t.lightbox:
+                    write_lightbox_domain(self.out, self.scene, rendered, camera, t.distortion, self.seed,
+                                          self.spp, step)
             if sp.views:
                 write_speedplus(self.out / "speedplus", self.scene, sp.train, sp.validation, sp.width, sp.height,
                                 sp.distortion, self.seed, self.spp, step, sp.range_m, sp.range_jitter)

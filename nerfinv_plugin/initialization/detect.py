@@ -12,6 +12,17 @@ resolution (240 x 150, sometimes 120 x 75). :func:`find_object` works in these s
    changing. The level is that sample's median; the noise is measured on its *bright* side only
    (1.4826 x median of the deviations above the level), because the bright tail is what the threshold must
    clear, and on a black frame the dark side is clipped at 0 and says nothing.
+   **A noisy frame is smoothed first** (:func:`pixel_noise`): when the noise between neighbouring pixels
+   is above 5 grey levels, a 3 x 3 median filter runs on the grey image before steps 2-6. A lab camera's
+   frame (the lightbox-like domain of ``ns-invert-synth``: read and shot noise under display gamma 2,
+   clipped at 0, then JPEG) has a lifted background (level 15) whose noise, on the max over channels (10
+   levels), puts the threshold at 67 and cuts all but the brightest faces. Filtered, the noise is 4.4 and
+   the threshold 37. On 40 such frames of the spacecraft (240 x 150) the mask's IoU with the object's alpha
+   went from a median of 0.52 (0 on two frames: the object lost) to 0.58 (at least 0.08); the same views
+   rendered without the lab camera score 0.55 (the lab lamp leaves faces black). A median, not a blur,
+   because it keeps the outline in place (a Gaussian of sigma 1 px widened it: IoU 0.87 against 0.91 on
+   the well-lit frames). Per-channel Gaussian noise of sigma 3 measures 2.1 here, sigma 6 4.2, sigma 10
+   6.3 (smoothed as well), a lab frame 7-8.5, a noise-free render 0.
 3. **Threshold = level + clamp(5 x noise, 12, 64) grey levels.** Five noise units leave about one
    background pixel in a 240 x 150 frame above it (measured for Gaussian noise of 0-10 grey levels, per
    channel or shared, on black or grey backgrounds). The floor of 12 is for noise-free frames (renders of
@@ -62,6 +73,10 @@ NEAR_MIN_PX = 4
 """A component with at most this many dark pixels between it and the kept mask is kept (step 5)..."""
 NEAR_FRACTION = 0.1
 """...or this fraction of the largest component's size, when that is more (step 5)."""
+NOISY_GREY = 5.0
+"""Pixel-to-pixel noise (grey levels) above which the frame is smoothed before thresholding (step 2)."""
+MEDIAN_SIZE_PX = 3
+"""Size of the median filter that smooths a noisy frame, pixels (step 2)."""
 MASK_ASPECT_TOLERANCE = 0.01
 """A mask file whose width / height differs from the frame's by more than this is refused."""
 
@@ -82,8 +97,8 @@ class Detection:
     """The mask reaches the outermost row or column: the frame may cut the object, so the box may be
     smaller than the object and its centre off."""
     threshold: float
-    """Grey level (0-255, on the max-over-channels image) that separated the object; NaN for a mask
-    given by the user."""
+    """Grey level (0-255, on the max-over-channels image, smoothed when the frame is noisy) that
+    separated the object; NaN for a mask given by the user."""
 
     @property
     def size(self) -> float:
@@ -150,6 +165,17 @@ def estimate_background(grey: np.ndarray, max_rounds: int = 50) -> tuple[float, 
     return level, noise
 
 
+def pixel_noise(grey: np.ndarray) -> float:
+    """Noise of ``grey`` [H, W] (0-255) from its horizontal neighbours: 1.4826 x the median absolute
+    difference / sqrt(2), the sigma of white Gaussian noise. Smooth regions (the background, most of the
+    object) dominate the median, and unlike the background sample's spread of :func:`estimate_background`
+    it is 0 on a noise-free render, whose black background has no spread for the sample to find."""
+    grey = np.asarray(grey, dtype=np.float32)
+    if grey.shape[1] < 2:
+        return 0.0
+    return 1.4826 * float(np.median(np.abs(np.diff(grey, axis=1)))) / math.sqrt(2.0)
+
+
 def foreground_threshold(level: float, noise: float) -> float:
     """Grey level above which a pixel is foreground (step 3)."""
     return level + min(max(NOISE_UNITS * noise, MIN_CONTRAST), MAX_CONTRAST)
@@ -185,6 +211,8 @@ def find_object(image: np.ndarray, min_area: int = 12) -> Detection | None:
     None when no object is found (all black / only noise / largest component below ``min_area`` pixels).
     """
     grey = grey_levels(image)
+    if pixel_noise(grey) > NOISY_GREY:
+        grey = cv2.medianBlur(grey, MEDIAN_SIZE_PX)
     threshold = foreground_threshold(*estimate_background(grey))
     foreground = (grey > threshold).astype(np.uint8)
     closed = cv2.morphologyEx(foreground, cv2.MORPH_CLOSE, np.ones((3, 3), dtype=np.uint8))
