@@ -2,6 +2,8 @@
 files and labels in SHIRT's layout, and the object mask found on its frames."""
 
 import json
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -11,10 +13,12 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
+from nerfinv_plugin.cli.lightbox_gap import RULES, LightboxGap
 from nerfinv_plugin.cli.synth import Synth, TrajectoryOptions
 from nerfinv_plugin.data.sequences import read_sequence
 from nerfinv_plugin.geometry.frames import look_at_c2w_opencv, object_to_camera_to_c2w
 from nerfinv_plugin.initialization.detect import find_object
+from nerfinv_plugin.inversion.validation import uncovered
 from nerfinv_plugin.synth.datasets import TrainingSetSpec, speedplus_like_camera
 from nerfinv_plugin.synth.lab_scene import LAB_SUN_COLOUR, lab_scene, lab_sun_direction, render_linear
 from nerfinv_plugin.synth.lightbox import LIGHTBOX, LabCamera, degrade, encode_jpeg, vignette_gain
@@ -230,3 +234,11 @@ def test_find_object_survives_the_lab_camera(lab_renders) -> None:
         assert got >= ref - 0.08, (k, got, ref)
         if k == 0:
             assert got >= 0.85, got
+
+
+def test_gap_command_checks_its_options(tmp_path: Path) -> None:
+    assert uncovered(LightboxGap, RULES) == []
+    done = subprocess.run([sys.executable, "-m", "nerfinv_plugin.cli.lightbox_gap", "--out", str(tmp_path / "gap"),
+                           "--num-frames", "0"], capture_output=True, text=True)
+    assert done.returncode == 2 and "--num-frames must be" in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and not (tmp_path / "gap").exists()
