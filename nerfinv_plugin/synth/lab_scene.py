@@ -39,9 +39,10 @@ def lab_sun_direction() -> np.ndarray:
     """Unit direction the lamp's light travels in the body frame: the training sun's, turned by
     :data:`LAB_SUN_TURN_DEG` sideways, about the part of the body z axis normal to it. It ends 51 degrees
     from straight down onto the solar panel (the training sun: 35). Of eight directions 40 degrees from the
-    training sun (45 degrees apart about it) this one left the fewest views dark: 5 of 40 frames of the
-    seed 0-4 roe1/roe2 trajectories with under a fifth of the object lit, against 15 of 40 for the lamp
-    over the panel (measured on the lit fraction of the renders, never on a pose result)."""
+    training sun (45 degrees apart about it) this one left the fewest views dark: 5 of 40 frames (0, 5, 10,
+    15 of the seed 0-4 roe1/roe2 trajectories) with under a fifth of the silhouette lit (exposed linear
+    value above 0.03 in some channel), against 15 of 40 for the lamp over the panel; measured on renders,
+    never on a pose result."""
     sun = SUN_DIRECTION / np.linalg.norm(SUN_DIRECTION)
     z_normal_to_sun = np.array([0.0, 0.0, 1.0]) - sun * sun[2]
     return _rotate(sun, z_normal_to_sun, np.radians(LAB_SUN_TURN_DEG))
