@@ -2,6 +2,7 @@
 fixed mode, determinism, the motion prior and the starting-pose sources."""
 
 import dataclasses
+import io
 import json
 
 import cv2
@@ -25,7 +26,14 @@ from nerfinv_plugin.inversion.starts import (
     training_views,
     volume,
 )
-from nerfinv_plugin.inversion.tracker import Frame, MonteCarloConfig, Tracker, _constant_velocity, keep_count
+from nerfinv_plugin.inversion.tracker import (
+    Frame,
+    MonteCarloConfig,
+    Tracker,
+    TrackerState,
+    _constant_velocity,
+    keep_count,
+)
 from nerfinv_plugin.model.loading import load_model
 from nerfinv_plugin.model.render import Intrinsics
 from nerfinv_plugin.synth.datasets import speedplus_like_camera, write_shirt_trajectories
@@ -120,6 +128,32 @@ def test_same_seed_same_numbers(toy_sequence):
         assert ra.loss == rb.loss and torch.equal(ra.estimate, rb.estimate)
         assert np.array_equal(ra.result.history[-1].loss, rb.result.history[-1].loss)
     assert any(ra.loss != rc.loss for ra, rc in zip(a, c))
+
+
+def test_motion_filter_changes_the_starts_and_a_resumed_run_gives_the_same_numbers(toy_sequence):
+    loaded, frames, centre = toy_sequence
+    start = _starts(frames[0].c2w_true, centre, 3, loaded.dataparser_scale, seed=2)
+
+    def tracker(motion: str) -> Tracker:
+        mc = MonteCarloConfig(keep=(2,), spawn=1, motion=motion)
+        return Tracker(loaded, centre, OptimizerConfig(iterations=3), mc, pixels=64, eval_pixels=128, seed=5)
+
+    whole = tracker("filter").run(frames[:4], start)
+    plain = tracker("none").run(frames[:4], start)
+    assert [r.loss for r in whole[:2]] == [r.loss for r in plain[:2]]  # no motion known before frame 2
+    assert whole[2].loss != plain[2].loss  # from frame 2 on the candidates start at the prediction
+    filtered = tracker("filter")
+    state = filtered.begin(start)
+    for k in range(2):
+        filtered.step(state, frames[k], k)
+    buffer = io.BytesIO()
+    torch.save(state.state_dict(), buffer)  # as state.pt keeps it
+    buffer.seek(0)
+    resumed = TrackerState.from_state_dict(torch.load(buffer, weights_only=False))
+    assert resumed.motion is not None and resumed.carried == state.carried
+    rest = [filtered.step(resumed, frames[k], k) for k in (2, 3)]
+    assert [r.loss for r in rest] == [r.loss for r in whole[2:]]
+    assert torch.equal(rest[-1].estimate, whole[-1].estimate)
 
 
 def test_constant_velocity_prediction_extrapolates_a_screw_motion():
