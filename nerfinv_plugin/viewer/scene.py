@@ -25,9 +25,11 @@ from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
 
 from nerfinv_plugin.results.trail import CameraRecord, SceneRecord
 
-FRUSTUM_SCALE = 0.1
-"""Training cameras: as nerfstudio's ``ViewerConfig.camera_frustum_scale``."""
-CANDIDATE_SCALE = 0.3
+TRAINING_SCALE = 0.03
+"""Size of a training camera's frustum, as a fraction of the distance from the scene's centre to the first
+known camera (nerfstudio's fixed 0.1 viewer units is too small to see when the cameras are far, as the
+range of a SHIRT trajectory puts them)."""
+CANDIDATE_SCALE = 0.06
 """The inversion's frustums, larger: they crowd about one pose, and they are what is watched."""
 TRAINING_COLOUR = (120, 120, 120)
 OBSERVED_COLOUR = (40, 120, 255)
@@ -92,27 +94,36 @@ class InversionScene:
     """Estimated pose of every finished frame, by frame index."""
 
     def __post_init__(self) -> None:
+        # Where the first known camera is, in viewer units: it sets the frustums' size and the first view.
+        known = [t for t in self.scene.truths if t is not None] + [c.c2w for c in self.scene.training_cameras]
+        self.eye = np.asarray(known[0])[:3, 3] * VISER_NERFSTUDIO_SCALE_RATIO if known else np.full(3, 10.0)
+        self.unit = max(float(np.linalg.norm(self.eye)), 1e-3)
         for k, camera in enumerate(self.scene.training_cameras):
-            self._frustum(f"/cameras/camera_{k:05d}", camera, np.asarray(camera.c2w), TRAINING_COLOUR)
+            self._frustum(f"/cameras/camera_{k:05d}", camera, np.asarray(camera.c2w), TRAINING_COLOUR,
+                          TRAINING_SCALE)
         self.server.on_client_connect(self._look_at_scene)
         self.status = self.server.gui.add_markdown("Waiting for the first iteration")
         # Images are data URLs; image_root only silences viser's warning about relative paths.
         self.images = self.server.gui.add_markdown("", image_root=Path.cwd())
 
     def _look_at_scene(self, client: viser.ClientHandle) -> None:
-        """Point a new browser's camera at the model frame's origin (where nerfstudio's dataparsers centre the
-        scene) from half again as far as the first known camera, z up (nerfstudio orients the scene so)."""
-        known = [t for t in self.scene.truths if t is not None] + [c.c2w for c in self.scene.training_cameras]
-        eye = np.asarray(known[0])[:3, 3] if known else np.array([1.0, 1.0, 1.0])
+        """Show a new browser the stretch between the scene's centre (the model frame's origin, where
+        nerfstudio's dataparsers put it) and the first known camera, where the candidates gather, from the
+        side, z up (nerfstudio orients the scene so)."""
+        middle = self.eye / 2
+        side = np.cross(self.eye, (0.0, 0.0, 1.0))
+        side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-9 else np.array([1.0, 0.0, 0.0])
         with client.atomic():
             client.camera.up_direction = (0.0, 0.0, 1.0)
-            client.camera.position = 1.5 * eye * VISER_NERFSTUDIO_SCALE_RATIO
-            client.camera.look_at = (0.0, 0.0, 0.0)
+            client.camera.position = middle + self.unit * (0.8 * side + np.array([0.0, 0.0, 0.3]))
+            client.camera.look_at = middle
 
     def _frustum(self, name: str, camera: CameraRecord, c2w: np.ndarray, colour: tuple[int, int, int],
-                 scale: float = FRUSTUM_SCALE, image: np.ndarray | None = None) -> viser.CameraFrustumHandle:
+                 scale: float, image: np.ndarray | None = None) -> viser.CameraFrustumHandle:
+        """A frustum ``scale`` times :attr:`unit` large."""
         wxyz, position = frustum_pose(c2w)
-        return self.server.scene.add_camera_frustum(name, fov=camera.fov, aspect=camera.aspect, scale=scale,
+        return self.server.scene.add_camera_frustum(name, fov=camera.fov, aspect=camera.aspect,
+                                                    scale=scale * self.unit,
                                                     color=colour, image=image, wxyz=wxyz, position=position)
 
     def observed(self, frame: int, image: np.ndarray | None, pose: np.ndarray | None) -> None:
@@ -157,7 +168,7 @@ class InversionScene:
         with self.server.atomic():
             self.server.scene.add_point_cloud(f"{name}/points", points.astype(np.float32),
                                               np.tile(np.array(colour, dtype=np.uint8), (len(points), 1)),
-                                              point_size=0.08)
+                                              point_size=0.01 * self.unit)
             if len(points) >= 2:
                 self.server.scene.add_spline_catmull_rom(f"{name}/line", points, color=colour, line_width=3.0)
 
