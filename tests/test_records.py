@@ -19,7 +19,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "nerfinv_plugin"
 FRAME_JSON = {"index": 1, "frame": 3, "name": "img000004.jpg", "steps": 2, "wall_time_s": 1.5, "elapsed_s": 4.25,
               "q": [0.5, 0.5, -0.5, 0.5], "r": [0.1, -0.2, 5.0], "c2w_model": [[1.0, 0.0, 0.0, 0.0]] * 4,
               "loss": 0.0123, "candidates": 9, "dropped": 1, "object_found": True, "reinitialized": True,
-              "bank_added": 3, "rotation_deg": 2.5, "translation_m": 0.05, "translation_rel": 0.01, "score": 0.0536}
+              "bank_added": 3, "interpolated": False, "observed_s": 15.0, "estimated_s": 18.5, "latency_s": 3.5,
+              "rotation_deg": 2.5, "translation_m": 0.05, "translation_rel": 0.01, "score": 0.0536}
 """A line of results.jsonl as ns-invert writes it, keys in the file's order."""
 STEP_JSON = {"index": 1, "frame": 3, "step": 3, "wall_time_s": 0.75, "candidates": 9, "kept": 3, "dropped": [4],
              "pruned": [2, 7], "iterations": 3, "loss": 0.0123, "reinitialized": False, "bank_added": 3,

@@ -6,13 +6,20 @@ model's weights trainable, stacks the losses, back-propagates once and steps Ada
 about the world origin. Ours is :func:`optimize_candidates` with the settings ``ns-invert`` runs with.
 Both see the same model, frame, starting poses and pixels (the same random generator draws them, so
 the first iteration renders the same rays both ways), and the model comes back from either as it went in.
+
+The latency mode (:func:`latency_runs`) runs ``ns-invert --clock realtime`` itself over a trajectory with
+its timestamps (SHIRT: 5 s apart) and the compute time measured: latency per frame, frames skipped, time to
+first lock and accuracy, the medians over repeated runs (:func:`latency_rows`).
 """
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
 
 import numpy as np
 import psutil
@@ -24,10 +31,13 @@ from nerfinv_plugin.bench.sampling import Sampling
 from nerfinv_plugin.geometry.se3 import exp_se3
 from nerfinv_plugin.inversion.optimizer import IterationRecord, OptimizerConfig, PreparedFrame, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler
+from nerfinv_plugin.inversion.session import Events, Inversion
+from nerfinv_plugin.inversion.settings import InvertConfig
 from nerfinv_plugin.model.fused_hash import stock_hash_encoding
 from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, memory_budget_bytes, pinhole_cameras
+from nerfinv_plugin.results.records import RunSummary
 
 START_MIN_DEG, START_MAX_DEG, START_SHIFT_M = 15.0, 20.0, 0.05
 """Where the throughput benchmarks start: iNeRF's protocol, 15-20 degrees and 5 cm off the truth."""
@@ -250,3 +260,77 @@ def profile_ours(loaded: LoadedModel, observed: ObservedFrame, candidates: int, 
     ranked = sorted(events, key=lambda e: e.self_cpu_time_total, reverse=True)[:top]
     return Profile(iterations, sum(e.self_cpu_time_total for e in events) / 1e6,
                    [OperatorTime(e.key, e.self_cpu_time_total / 1e6, e.count) for e in ranked])
+
+
+@dataclass(frozen=True)
+class LatencyRun:
+    """One ``ns-invert --clock realtime`` run of the latency benchmark, with measured compute time."""
+
+    clock_speed: float
+    run: Path
+    summary: RunSummary
+
+
+@dataclass(frozen=True)
+class LatencyRow:
+    """The latency benchmark at one clock speed: medians over its runs."""
+
+    clock_speed: float
+    runs: int
+    frames: int
+    """Frames of the sequence the runs covered."""
+    mean_latency_s: float
+    """Median over the runs of each run's mean latency of its estimated frames."""
+    max_latency_s: float
+    frames_skipped: float
+    time_to_first_lock_s: float | None
+    """Median over the runs that locked (under 5 degrees); ``None`` when none did."""
+    locked_runs: int
+    rotation_mean_deg: float | None
+    """Median of the runs' mean rotation error over every frame, interpolated ones included."""
+    rotation_mean_estimated_deg: float | None
+    """The same over the estimated frames alone."""
+    under_5deg: float | None
+    """Median share of the frames (all of them) under 5 degrees."""
+
+
+def latency_runs(config: InvertConfig, speeds: Sequence[float], repeats: int,
+                 events: Callable[[float, int], Events] = lambda speed, repeat: Events()) -> list[LatencyRun]:
+    """``config`` run ``repeats`` times at each clock speed with ``--clock realtime`` and the compute time
+    measured (no fixed cost), each in a new folder under ``config.output_dir / config.name``; ``events``
+    gives each run's front end."""
+    stamp = datetime.now().strftime("%Y-%m-%d_%H%M%S")
+    runs = []
+    for speed in speeds:
+        for repeat in range(repeats):
+            c = dataclasses.replace(config, clock="realtime", clock_speed=float(speed), clock_cost_s=None,
+                                    timestamp=f"{stamp}-speed{speed:g}-run{repeat}")
+            inversion = Inversion.create(c, events(speed, repeat))
+            runs.append(LatencyRun(float(speed), inversion.folder.path, inversion.run()))
+    return runs
+
+
+def _median(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return float(np.median(known)) if known else None
+
+
+def latency_rows(runs: Sequence[LatencyRun]) -> list[LatencyRow]:
+    """One row per clock speed, in the order first run."""
+    rows = []
+    for speed in dict.fromkeys(r.clock_speed for r in runs):
+        summaries = [r.summary for r in runs if r.clock_speed == speed]
+        rotation = [None if s.rotation_deg is None else s.rotation_deg.mean for s in summaries]
+        estimated = [s.estimated_only.rotation_deg.mean if s.estimated_only is not None else rot
+                     for s, rot in zip(summaries, rotation)]
+        rows.append(LatencyRow(
+            clock_speed=speed, runs=len(summaries), frames=summaries[0].frames_done,
+            mean_latency_s=float(np.median([s.latency_s.mean for s in summaries])),
+            max_latency_s=float(np.median([s.latency_s.max for s in summaries])),
+            frames_skipped=float(np.median([s.frames_skipped for s in summaries])),
+            time_to_first_lock_s=_median([s.time_to_first_lock_s for s in summaries]),
+            locked_runs=sum(s.time_to_first_lock_s is not None for s in summaries),
+            rotation_mean_deg=_median(rotation), rotation_mean_estimated_deg=_median(estimated),
+            under_5deg=_median([None if s.success_rotation is None else s.success_rotation["5deg"]
+                                for s in summaries])))
+    return rows

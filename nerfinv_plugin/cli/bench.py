@@ -6,6 +6,7 @@ this module parses, calls and prints the tables (markdown, to paste into docs/be
 """
 
 import dataclasses
+import os
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -31,7 +32,7 @@ from nerfinv_plugin.bench.grid import (
     with_cases,
 )
 from nerfinv_plugin.bench.observed import read_observed
-from nerfinv_plugin.bench.perf import compare_loops, profile_ours, sweep
+from nerfinv_plugin.bench.perf import compare_loops, latency_rows, latency_runs, profile_ours, sweep
 from nerfinv_plugin.bench.recall import bank_benchmark
 from nerfinv_plugin.bench.render_speed import render_problem, render_speed
 from nerfinv_plugin.bench.sampling import Sampling
@@ -41,8 +42,9 @@ from nerfinv_plugin.bench.tables import TABLE_MD
 from nerfinv_plugin.cli import Interrupted, run
 from nerfinv_plugin.data.sequences import SequenceError
 from nerfinv_plugin.initialization.bank import BankConfig
-from nerfinv_plugin.inversion.session import Events
-from nerfinv_plugin.inversion.settings import RenderConfig, SettingsError
+from nerfinv_plugin.inversion.session import Events, InversionError
+from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, SettingsError, preset_path, read_yaml, updated
+from nerfinv_plugin.inversion.validation import validate
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.loading import Device, ModelLoadError, load_model
 
@@ -202,9 +204,30 @@ class PerfBench(SpeedBench):
     profile: bool = False
     """Profile 5 of our iterations with torch.profiler instead and print the operators that take the most
     CPU time."""
+    latency: bool = False
+    """Run ns-invert --clock realtime over the sequence instead (a SHIRT trajectory: its frames 5 s apart),
+    with the compute time measured, at each --clock-speeds, --latency-runs times: latency per frame, frames
+    skipped, time to first lock, accuracy (medians over the runs). The inversion is ns-invert's (or
+    --preset's) with --candidates as --starts.count, --pixels, --iterations, --seed, --resolution, --target,
+    --device, --start and --stop; our --render options do not apply (ns-invert's own do)."""
+    clock_speeds: tuple[float, ...] = (1.0, 0.1)
+    """--latency: the clock speeds to run at (0.1: a computer ten times slower)."""
+    latency_runs: int = 3
+    """--latency: runs at each speed."""
+    preset: str | None = None
+    """--latency: ns-invert preset to start from (a name in configs/ or a YAML file)."""
+    start: int = 0
+    """--latency: first frame of the sequence."""
+    stop: int | None = None
+    """--latency: frame to stop before. Default: the end of the sequence."""
+    out: Path = Path("outputs")
+    """--latency: the runs go to <out>/latency/nerfinv/<time>-speed<S>-run<i>/."""
 
     def main(self) -> None:
         console = Console(soft_wrap=True)  # table rows on one line, to paste
+        if self.latency:
+            self.latency_main(console)
+            return
         loaded = self.load()
         observed = read_observed(loaded, self.sequence, self.frame, self.target, self.resolution)
         width, height = observed.intrinsics.width, observed.intrinsics.height
@@ -239,6 +262,55 @@ class PerfBench(SpeedBench):
             console.print(f"| {name} | {t.per_iteration:.3f} | {t.rays_per_second:,.0f} | "
                           f"{t.peak_memory_bytes / MB:,.0f} MB | {float(np.mean(t.first_losses)):.4f} |")
         console.print(f"ratio (thesis time per iteration / ours): [bold]{compared.ratio:.2f}x[/bold]")
+
+    def latency_config(self) -> InvertConfig:
+        """The ns-invert settings of the latency runs."""
+        base = InvertConfig() if self.preset is None else \
+            updated(InvertConfig(), read_yaml(preset_path(self.preset)), self.preset)
+        config = dataclasses.replace(
+            base, load_config=self.load_config, sequence=self.sequence, output_dir=self.out, name="latency",
+            device=self.device, seed=self.seed, target=self.target, start=self.start, stop=self.stop,
+            resolution=self.resolution if self.resolution is not None else base.resolution, pixels=self.pixels,
+            starts=dataclasses.replace(base.starts, count=self.candidates),
+            optimizer=dataclasses.replace(base.optimizer, iterations=self.iterations), preset=self.preset)
+        validate(config)
+        return config
+
+    def latency_main(self, console: Console) -> None:
+        if self.threads is not None:
+            torch.set_num_threads(self.threads)
+        config = self.latency_config()
+        load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
+        console.print(f"ns-invert --clock realtime on {self.sequence} (frames {self.start}:{self.stop or ''}), "
+                      f"{self.candidates} candidates x {self.pixels} pixels x {self.iterations} iterations, "
+                      f"{torch.get_num_threads()} torch threads, load average {load} before, "
+                      f"{datetime.now():%Y-%m-%d %H:%M}")
+
+        def events(speed: float, repeat: int) -> Events:
+            return Events(frame=lambda row: console.print(
+                f"speed {speed:g} run {repeat}: frame {row.frame} "
+                f"{'interpolated' if row.interpolated else 'estimated'}, latency {row.latency_s:.1f} s"
+                + ("" if row.rotation_deg is None else f", {row.rotation_deg:.1f} deg")))
+
+        try:
+            runs = latency_runs(config, self.clock_speeds, self.latency_runs, events)
+        except KeyboardInterrupt:
+            raise Interrupted(f"interrupted; the finished runs are in {self.out / 'latency' / 'nerfinv'}") from None
+        for run_ in runs:
+            console.print(f"run: {run_.run}")
+        console.print(f"load average after: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
+        console.print("| clock speed | runs | frames | mean latency (s) | max latency (s) | frames skipped | "
+                      "first lock (s, runs locked) | rotation mean, all frames (deg) | estimated alone (deg) | "
+                      "under 5 deg |\n"
+                      "|---|---|---|---|---|---|---|---|---|---|")
+        for row in latency_rows(runs):
+            lock = "never" if row.time_to_first_lock_s is None else f"{row.time_to_first_lock_s:.1f}"
+            rot = "–" if row.rotation_mean_deg is None else f"{row.rotation_mean_deg:.2f}"
+            est = "–" if row.rotation_mean_estimated_deg is None else f"{row.rotation_mean_estimated_deg:.2f}"
+            under = "–" if row.under_5deg is None else f"{100 * row.under_5deg:.0f}%"
+            console.print(f"| {row.clock_speed:g} | {row.runs} | {row.frames} | {row.mean_latency_s:.2f} | "
+                          f"{row.max_latency_s:.2f} | {row.frames_skipped:g} | {lock} ({row.locked_runs}/{row.runs}) | "
+                          f"{rot} | {est} | {under} |")
 
 
 @dataclass(kw_only=True)
@@ -393,7 +465,7 @@ Commands = (
 
 
 def entrypoint() -> None:
-    run(Commands, "ns-invert-bench", GridError, SettingsError, ModelLoadError, SequenceError,
+    run(Commands, "ns-invert-bench", GridError, SettingsError, ModelLoadError, SequenceError, InversionError,
         default=tyro.MISSING_NONPROP)  # no default: a subcommand is required
 
 

@@ -18,6 +18,7 @@ from nerfinv_plugin.inversion.validation import check, validate
 from nerfinv_plugin.model.loaded import ModelLoadError
 from nerfinv_plugin.report.build import write_report
 from nerfinv_plugin.results.records import FrameResult, RunSummary, StepRow
+from nerfinv_plugin.results.summary import LOCK_DEG
 from nerfinv_plugin.viewer.live import PORT, LiveViewer, start_server, viewer_url
 from nerfinv_plugin.viewer.record import TrailRecorder, merged
 
@@ -30,11 +31,14 @@ VIEWER_RULES = {"viewer-port": PORT}
 def _frame_line(row: FrameResult) -> str:
     error = "" if row.rotation_deg is None else \
         f"rotation {row.rotation_deg:.2f} deg, translation {row.translation_m:.3f} m, "
+    latency = "" if row.latency_s is None else f", latency {row.latency_s:.1f} s"
+    if row.interpolated:
+        return f"frame {row.frame} ({row.name}): skipped, pose interpolated; {error}{latency.removeprefix(', ')}"
     flags = "" if row.object_found else ", no object found"
     flags += ", bank asked again" if row.reinitialized else \
         (f", {row.bank_added} bank hypotheses joined" if row.bank_added else "")
     return (f"frame {row.frame} ({row.name}): {error}loss {row.loss:.5f}, {row.candidates} candidates, "
-            f"{row.wall_time_s:.1f} s{flags}")
+            f"{row.wall_time_s:.1f} s{latency}{flags}")
 
 
 def _summary_lines(summary: RunSummary) -> list[str]:
@@ -49,6 +53,27 @@ def _summary_lines(summary: RunSummary) -> list[str]:
         lines.append(f"translation error mean {summary.translation_m.mean:.3f} m "
                      f"({100 * summary.translation_rel.mean:.1f}% of range); "
                      f"SPEC score mean {summary.score.mean:.4f}")
+    lines += _clock_lines(summary)
+    return lines
+
+
+def _clock_lines(summary: RunSummary) -> list[str]:
+    """Latency, frames skipped and the first lock; the accuracy over the estimated frames alone."""
+    lines = []
+    if summary.latency_s is not None:
+        latency = summary.latency_s
+        lines.append(f"latency (observation to estimate, clock {summary.clock}) mean {latency.mean:.2f} s, median "
+                     f"{latency.median:.2f}, max {latency.max:.2f}; {summary.frames_skipped} of {summary.frames_done} "
+                     "frames skipped (interpolated)")
+    if summary.rotation_deg is not None:
+        lock = "never" if summary.time_to_first_lock_s is None else \
+            f"{summary.time_to_first_lock_s:.1f} s (frame {summary.first_lock_frame})"
+        lines.append(f"first estimate under {LOCK_DEG:g} deg: {lock}")
+    estimated = summary.estimated_only
+    if estimated is not None:
+        lines.append(f"over the {estimated.frames} estimated frames alone: rotation error mean "
+                     f"{estimated.rotation_deg.mean:.2f} deg, median {estimated.rotation_deg.median:.2f}; under "
+                     "2/5/10 deg: " + " / ".join(f"{100 * v:.0f}%" for v in estimated.success_rotation.values()))
     return lines
 
 

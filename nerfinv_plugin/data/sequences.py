@@ -16,6 +16,7 @@ these paths come straight from a command line.
 """
 
 import contextlib
+import dataclasses
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,7 @@ SequenceKind = Literal["shirt", "blender", "folder"]
 SHIRT_DOMAINS = ("synthetic", "lightbox")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 POSES_FILE = "poses.json"
+SHIRT_METADATA = "metadata.json"
 CAMERA_FILE = "camera.json"
 
 _LAYOUTS = ("a SHIRT trajectory <root>/roeN[/synthetic|/lightbox], a Blender split <scene>:<split> "
@@ -67,6 +69,9 @@ class SequenceFrame:
     """[H, W, 3] ``uint8`` RGB at the working resolution."""
     c2w_true: np.ndarray | None
     """[4, 4] float64 camera-to-world in the dataset frame, OpenGL axes; ``None`` without ground truth."""
+    time_s: float | None = None
+    """When the frame was taken, seconds after the first frame read (positions in the whole sequence apart,
+    times the frame interval); ``None`` when the interval is not known."""
 
 
 @dataclass
@@ -80,6 +85,9 @@ class Sequence:
     transforms file; folder: the folder."""
     native_size: tuple[int, int]
     """(width, height) of the images on disk."""
+    frame_interval_s: float | None = None
+    """Seconds between consecutive frames of the whole sequence (SHIRT: ``pSim.cam_step`` of
+    ``metadata.json``, or the one given); ``None``: not known."""
 
     @property
     def has_truth(self) -> bool:
@@ -108,12 +116,17 @@ class _Listing:
     """The file (or folder) that lists the frames, named when one of them is missing."""
     entries: list[_Entry]
     camera: CameraForSize
+    frame_interval_s: float | None = None
+    """What the layout says about the frames' spacing in time (SHIRT's metadata.json)."""
 
 
 def read_sequence(spec: str | Path, start: int = 0, stop: int | None = None, stride: int = 1,
-                  resolution: tuple[int, int] | None = None, camera: Path | None = None) -> Sequence:
+                  resolution: tuple[int, int] | None = None, camera: Path | None = None,
+                  frame_interval_s: float | None = None) -> Sequence:
     """Frames ``start:stop:stride`` of the sequence ``spec`` at ``resolution`` (width, height; native if
-    ``None``). ``camera`` replaces the camera.json a SHIRT tree or an image folder would be read with."""
+    ``None``). ``camera`` replaces the camera.json a SHIRT tree or an image folder would be read with.
+    ``frame_interval_s`` gives the seconds between consecutive frames of the whole sequence (the frames'
+    ``time_s``); unset, SHIRT's metadata.json gives it, and other layouts have no timestamps."""
     _check_range(spec, start, stop, stride)
     if resolution is not None and not (len(resolution) == 2 and all(int(v) == v > 0 for v in resolution)):
         raise SequenceError(f"invalid resolution {resolution} for {spec}; give (width, height) as two positive "
@@ -122,12 +135,16 @@ def read_sequence(spec: str | Path, start: int = 0, stop: int | None = None, str
         listing = _list_frames(spec, None if camera is None else Path(camera))
     if not listing.entries:
         raise SequenceError(f"{listing.index} lists no frames; point to a sequence with at least one image")
+    if frame_interval_s is not None:
+        if not (np.isfinite(frame_interval_s) and frame_interval_s > 0):
+            raise SequenceError(f"frame interval {frame_interval_s} s for {spec}; give a positive number of seconds")
+        listing = dataclasses.replace(listing, frame_interval_s=float(frame_interval_s))
     selected = listing.entries[start:stop:stride]
     if not selected:
         raise SequenceError(f"frames {start}:{'' if stop is None else stop}:{stride} select nothing from the "
                             f"{len(listing.entries)} frames of {listing.source}; choose a start below "
                             f"{len(listing.entries)} and a stop above the start")
-    return _load(listing, selected, resolution)
+    return _load(listing, selected, range(len(listing.entries))[start:stop:stride], resolution)
 
 
 def shirt_trajectory_poses(spec: str | Path) -> tuple[str, dict[str, np.ndarray]]:
@@ -210,7 +227,21 @@ def _shirt(trajectory: Path, domain: str, camera: Path | None) -> _Listing:
     poses = read_label_poses(labels_path)
     entries = [_Entry(name, images / name, c2w) for name, c2w in poses]
     camera_file = _read_camera(_camera_path(camera, trajectory.parent, "the SHIRT root"))
-    return _Listing("shirt", trajectory / domain, labels_path, entries, camera_file)
+    return _Listing("shirt", trajectory / domain, labels_path, entries, camera_file,
+                    _shirt_frame_interval(trajectory / SHIRT_METADATA))
+
+
+def _shirt_frame_interval(path: Path) -> float | None:
+    """``pSim.cam_step`` of a SHIRT trajectory's metadata.json (5 s in SHIRT v1); ``None`` when the file is
+    missing or does not say, which matters only to runs that need timestamps (they say so)."""
+    if not path.is_file():
+        return None
+    try:
+        step = read_json(path).get("pSim", {}).get("cam_step")
+    except (DataFileError, AttributeError):
+        return None
+    valid = isinstance(step, int | float) and not isinstance(step, bool) and np.isfinite(step) and step > 0
+    return float(step) if valid else None
 
 
 def _folder(folder: Path, camera: Path | None) -> _Listing:
@@ -308,15 +339,17 @@ def _read_camera(path: Path) -> CameraForSize:
     return camera
 
 
-def _load(listing: _Listing, entries: list[_Entry], resolution: tuple[int, int] | None) -> Sequence:
-    """Read, undistort and resize each frame in turn, so that memory holds one native image at a time."""
+def _load(listing: _Listing, entries: list[_Entry], positions: range, resolution: tuple[int, int] | None) -> Sequence:
+    """Read, undistort and resize each frame in turn, so that memory holds one native image at a time.
+    ``positions`` are the entries' places in the whole sequence, which their timestamps follow from."""
     first = _read_frame_image(listing, entries[0])
     native = (first.shape[1], first.shape[0])
     camera = listing.camera(entries[0].path, native)
     remap = _undistorter(camera, native)
     target = native if resolution is None else (int(resolution[0]), int(resolution[1]))
     frames = []
-    for i, entry in enumerate(entries):
+    interval = listing.frame_interval_s
+    for i, (entry, position) in enumerate(zip(entries, positions)):
         image = first if i == 0 else _read_frame_image(listing, entry)
         size = (image.shape[1], image.shape[0])
         if size != native:
@@ -326,9 +359,10 @@ def _load(listing: _Listing, entries: list[_Entry], resolution: tuple[int, int] 
             image = remap(image)
         if target != native:
             image = cv2.resize(image, target, interpolation=cv2.INTER_AREA)
-        frames.append(SequenceFrame(entry.name, image, entry.c2w_true))
+        time_s = None if interval is None else (position - positions[0]) * interval
+        frames.append(SequenceFrame(entry.name, image, entry.c2w_true, time_s))
     intrinsics = Intrinsics.from_opencv(camera.matrix, *native).scaled(*target)
-    return Sequence(frames, intrinsics, listing.kind, listing.source, native)
+    return Sequence(frames, intrinsics, listing.kind, listing.source, native, interval)
 
 
 def _read_frame_image(listing: _Listing, entry: _Entry) -> np.ndarray:

@@ -4,9 +4,11 @@ tracker frame after frame, and write every result into the run folder as soon as
 The schedule is the tracker's (:meth:`Tracker.schedule`): frame ``k`` gets ``steps_per_frame`` consecutive
 steps. In ``trajectory`` mode the candidates carry over from frame to frame (the thesis' method); in
 ``fixed`` mode every frame starts again from the starting poses (parallel iNeRF on each image alone, the
-baseline). After every step the whole state is
+baseline). Which frames are taken is the clock's (:mod:`nerfinv_plugin.inversion.clock`): every frame in
+turn (``--clock frames``), or the newest one observed when the previous step ends (``--clock realtime``,
+the frames skipped interpolated). After every step the whole state is
 saved, so a run stopped anywhere (Ctrl-C, a crash, a full disk) resumes at the step it lost and ends with
-the numbers an uninterrupted run would have given.
+the numbers an uninterrupted run would have given (with the realtime clock: when it charges a fixed cost).
 """
 
 import dataclasses
@@ -15,7 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import assert_never
+from typing import TypeVar, assert_never
 
 import numpy as np
 import torch
@@ -29,6 +31,7 @@ from nerfinv_plugin.initialization.detect import Detection, MaskError, detection
 from nerfinv_plugin.initialization.extent import object_radius
 from nerfinv_plugin.initialization.initializer import Initializer, silhouette_iou
 from nerfinv_plugin.inversion import starts
+from nerfinv_plugin.inversion.clock import Clock, fraction_between, interpolated_pose
 from nerfinv_plugin.inversion.optimizer import IterationRecord, StepResult
 from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, read_config, write_config
 from nerfinv_plugin.inversion.tracker import Frame, StepRecord, Tracker, TrackerState
@@ -39,6 +42,9 @@ from nerfinv_plugin.results.folder import CONFIG, RunFolder
 from nerfinv_plugin.results.records import BankSummary, FrameResult, RunSummary, StepRow
 from nerfinv_plugin.results.summary import summarize
 
+T = TypeVar("T")
+R = TypeVar("R")
+
 BOUNDED_PROPOSAL_SAMPLES = (8, 4)
 """Samples per proposal level when rays are bounded to the object (docs/benchmarks.md: the same inversion
 errors as the trained (64, 32) in three seeds, at a sixth of the cost)."""
@@ -46,6 +52,16 @@ BOUNDED_NERF_SAMPLES = 8
 RANK_MARGIN = 0.25
 """With ``--rank-region object``, candidates are ranked on pixels of the object's box widened by this
 fraction of its size on every side: a candidate that puts the object beside it is still seen."""
+
+
+def _timed_each(work: Callable[[T], R], items: list[T]) -> tuple[list[R], list[float]]:
+    """``work`` of every item, and the seconds each took."""
+    results, seconds = [], []
+    for item in items:
+        tic = time.perf_counter()
+        results.append(work(item))
+        seconds.append(time.perf_counter() - tic)
+    return results, seconds
 
 
 class InversionError(Exception):
@@ -163,11 +179,13 @@ class Inversion:
         """Run (or continue) to the end of the sequence; return the summary."""
         c = self.config
         loaded = load_model(c.load_config, device=c.device)
-        sequence = read_sequence(c.sequence, c.start, c.stop, c.stride, c.resolution, c.camera)
+        sequence = read_sequence(c.sequence, c.start, c.stop, c.stride, c.resolution, c.camera, c.frame_interval_s)
+        clock = self._clock(sequence)
         frames = [Frame(f.image, sequence.intrinsics, f.name, None if f.c2w_true is None else
                         torch.as_tensor(loaded.dataset_to_model(f.c2w_true), dtype=torch.float32))
                   for f in sequence.frames]
-        detections = self._detections(sequence)
+        detections, detect_s = self._detections(sequence)
+        setup = time.perf_counter()  # from here on, everything is compute the clock is charged for
         if c.rank_region == "object":
             for frame, detection in zip(frames, detections):
                 frame.rank_region = None if detection is None else detection.around(RANK_MARGIN)
@@ -179,6 +197,7 @@ class Inversion:
         if c.starts.source == "bank":
             initializer = self._initializer(loaded, centre, settings)
         start = self._starts(loaded, sequence, centre, detections, initializer)
+        setup_s = time.perf_counter() - setup
         tracker = Tracker(loaded, centre, c.optimizer, c.monte_carlo, c.sampling, c.pixels, c.eval_pixels,
                           c.seed, rotation_error_deg, settings)
         self.folder.path.mkdir(parents=True, exist_ok=True)
@@ -188,15 +207,19 @@ class Inversion:
         saved = self.folder.load()
         if saved is None:
             rows, steps, elapsed, resumed = [], [], 0.0, None
+            clock.charge(setup_s)
         else:
             rows, steps, elapsed = saved.rows, saved.steps, saved.elapsed_s
             resumed = TrackerState.from_state_dict(saved.tracker)
             self.folder.export(rows, steps)  # catch up if the last run stopped between the two writes
-        total = len(frames) * c.steps_per_frame
+            # the recorded clock (runs from before it: their compute time)
+            clock.now_s = steps[-1].clock_end_s if steps[-1].clock_end_s is not None else elapsed / c.clock_speed
+        visited = [s.index for i, s in enumerate(steps) if i == 0 or steps[i - 1].index != s.index]
+        total = len(frames) * c.steps_per_frame  # realtime: at most
         self.events.begin(total, len(steps), c.optimizer.iterations)
-        frame_time = sum(s.wall_time_s for s in steps if s.index == len(rows))
-        for step_index, k, within, state in tracker.schedule(len(frames), start, c.steps_per_frame, resumed,
-                                                              len(steps)):
+        for step_index, k, within, state in tracker.schedule(clock.visits(visited), start, c.steps_per_frame,
+                                                              resumed, len(steps)):
+            begun = clock.now_s
             self.events.step_begin(step_index, k)
             tic = time.perf_counter()
             detection = detections[k]
@@ -213,37 +236,51 @@ class Inversion:
                 record = tracker.step(state, frames[k], k, self.events.iteration)
             wall = time.perf_counter() - tic
             elapsed += wall
-            frame_time += wall
-            steps.append(self._step_row(record, k, self._frame_number(k), step_index, wall, reinitialized, watched))
+            clock.charge(wall + (detect_s[k] if within == 0 else 0.0), len(record.result.history))
+            steps.append(self._step_row(record, k, self._frame_number(k), step_index, wall, reinitialized, watched,
+                                        begun, clock.now_s))
             if record.result.dropped:
                 self.events.warn(f"frame {k} ({frames[k].name}): dropped candidate(s) "
                                  f"{', '.join(map(str, record.result.dropped))} (non-finite pose, loss or "
                                  "gradient); going on with the others")
+            finished = []
             if within == c.steps_per_frame - 1:
                 own = [s for s in steps if s.index == k]
-                rows.append(self._frame_row(loaded, record, sequence, k, frame_time, elapsed, detection is not None,
-                                            any(s.reinitialized for s in own), sum(s.bank_added for s in own)))
-                frame_time = 0.0
+                row = self._frame_row(loaded, record, sequence, k, sum(s.wall_time_s for s in own), elapsed,
+                                      detection is not None, any(s.reinitialized for s in own),
+                                      sum(s.bank_added for s in own), clock)
+                finished = self._skipped_rows(loaded, sequence, rows[-1] if rows else None, row, detections) + [row]
+                rows.extend(finished)
             self.folder.save(rows, steps, state.state_dict(), elapsed)
             self.events.ranked(step_index, record)
             self.events.step(steps[-1])
-            if within == c.steps_per_frame - 1:
-                self.events.frame(rows[-1])
+            for row in finished:
+                self.events.frame(row)
         summary = self.summary(rows, total // c.steps_per_frame, loaded, settings, sequence, initializer)
         self.folder.write_summary(summary)
         return summary
 
-    def _detections(self, sequence: Sequence) -> list[Detection | None]:
+    def _clock(self, sequence: Sequence) -> Clock:
+        """The run's clock (``--clock``), with the frames' timestamps when the sequence has them."""
+        c = self.config
+        times = [f.time_s for f in sequence.frames]
+        observed = None if any(t is None for t in times) else times
+        if c.clock == "realtime" and observed is None:
+            raise InversionError(f"--clock realtime needs the frames' timestamps and {c.sequence} has none (SHIRT "
+                                 "gives them in roeN/metadata.json, pSim.cam_step): give --frame-interval-s SECONDS")
+        return Clock(c.clock, len(sequence.frames), observed, c.clock_speed, c.clock_cost_s)
+
+    def _detections(self, sequence: Sequence) -> tuple[list[Detection | None], list[float]]:
         """The object in every frame: from the mask folder when one is given, else found on the dark
-        background."""
+        background; and the seconds each detection took (the clock charges a frame's when a step takes it)."""
         if self.config.masks is None:
-            return [find_object(f.image) for f in sequence.frames]
+            return _timed_each(find_object, [f.image for f in sequence.frames])
         height, width = sequence.frames[0].image.shape[:2]
         try:
             masks = read_masks(self.config.masks, [f.name for f in sequence.frames], (height, width))
         except MaskError as err:
             raise InversionError(f"--masks: {err}") from err
-        return [detection_from_mask(mask) for mask in masks]
+        return _timed_each(detection_from_mask, masks)
 
     def _initializer(self, loaded: LoadedModel, centre: Tensor, settings: RenderSettings) -> Initializer:
         """The view bank, from the cache or rendered now."""
@@ -338,35 +375,63 @@ class Inversion:
 
     @staticmethod
     def _step_row(record: StepRecord, index: int, frame: int, step: int, wall: float, reinitialized: bool,
-                  watched: int) -> StepRow:
+                  watched: int, clock_start_s: float, clock_end_s: float) -> StepRow:
         history = record.result.history
         errors = bool(history) and history[0].error_deg is not None
         return StepRow(
             index=index, frame=frame, step=step, wall_time_s=wall, candidates=record.candidates, kept=record.kept,
             dropped=record.result.dropped, pruned=record.result.pruned, iterations=len(history), loss=record.loss,
             reinitialized=reinitialized, bank_added=watched,
-            best_loss_per_iteration=[float(np.min(h.loss)) for h in history],
+            best_loss_per_iteration=[float(np.min(h.loss)) for h in history], clock_start_s=clock_start_s,
+            clock_end_s=clock_end_s,
             best_error_deg_per_iteration=[float(np.min(h.error_deg)) for h in history] if errors else None,
             error_of_best_loss_per_iteration=[float(h.error_deg[np.argmin(h.loss)]) for h in history]
             if errors else None)
 
     def _frame_row(self, loaded: LoadedModel, record: StepRecord, sequence: Sequence, k: int, wall: float,
-                   elapsed: float, object_found: bool, reinitialized: bool, bank_added: int) -> FrameResult:
+                   elapsed: float, object_found: bool, reinitialized: bool, bank_added: int,
+                   clock: Clock) -> FrameResult:
         estimate_model = record.estimate.double().numpy()
         q, r = dataset_pose_to_label(loaded.model_to_dataset(estimate_model))
+        observed = clock.observed(k)
         row = FrameResult(index=k, frame=self._frame_number(k), name=sequence.frames[k].name,
                           steps=self.config.steps_per_frame, wall_time_s=wall, elapsed_s=elapsed, q=q, r=r,
                           c2w_model=estimate_model.tolist(), loss=record.loss, candidates=record.candidates,
                           dropped=len(record.result.dropped), object_found=object_found, reinitialized=reinitialized,
-                          bank_added=bank_added)
-        truth = sequence.frames[k].c2w_true
-        if truth is not None:
-            q_true, r_true = dataset_pose_to_label(truth)
-            error = label_error(np.array(q), np.array(r), np.array(q_true), np.array(r_true),
-                                hil="lightbox" in str(self.config.sequence))
-            row = dataclasses.replace(row, rotation_deg=error.rotation_deg, translation_m=error.translation_m,
-                                      translation_rel=error.translation_rel, score=error.score)
-        return row
+                          bank_added=bank_added, observed_s=observed, estimated_s=clock.now_s,
+                          latency_s=None if observed is None else clock.now_s - observed)
+        return self._with_errors(row, sequence)
+
+    def _with_errors(self, row: FrameResult, sequence: Sequence) -> FrameResult:
+        """``row`` with its errors against the frame's true pose, when known."""
+        truth = sequence.frames[row.index].c2w_true
+        if truth is None:
+            return row
+        q_true, r_true = dataset_pose_to_label(truth)
+        error = label_error(np.array(row.q), np.array(row.r), np.array(q_true), np.array(r_true),
+                            hil="lightbox" in str(self.config.sequence))
+        return dataclasses.replace(row, rotation_deg=error.rotation_deg, translation_m=error.translation_m,
+                                   translation_rel=error.translation_rel, score=error.score)
+
+    def _skipped_rows(self, loaded: LoadedModel, sequence: Sequence, before: FrameResult | None, after: FrameResult,
+                      detections: list[Detection | None]) -> list[FrameResult]:
+        """The frames between the estimated ``before`` and ``after`` that the realtime clock skipped, with
+        poses interpolated on SE(3) between theirs at their observation times; known once ``after`` is."""
+        if before is None or after.index == before.index + 1:
+            return []
+        a, b = torch.as_tensor(before.c2w_model), torch.as_tensor(after.c2w_model)
+        rows = []
+        for j in range(before.index + 1, after.index):
+            observed = sequence.frames[j].time_s
+            pose = interpolated_pose(a, b, fraction_between(before.observed_s, observed, after.observed_s)).numpy()
+            q, r = dataset_pose_to_label(loaded.model_to_dataset(pose))
+            row = FrameResult(index=j, frame=self._frame_number(j), name=sequence.frames[j].name, steps=0,
+                              wall_time_s=0.0, elapsed_s=after.elapsed_s, q=q, r=r, c2w_model=pose.tolist(), loss=None,
+                              candidates=0, dropped=0, object_found=detections[j] is not None, interpolated=True,
+                              observed_s=observed, estimated_s=after.estimated_s,
+                              latency_s=after.estimated_s - observed)
+            rows.append(self._with_errors(row, sequence))
+        return rows
 
     def summary(self, rows: list[FrameResult], total_frames: int, loaded: LoadedModel, settings: RenderSettings,
                 sequence: Sequence, initializer: Initializer | None = None) -> RunSummary:
@@ -380,7 +445,7 @@ class Inversion:
             sequence=str(self.config.sequence), sequence_format=sequence.kind, frames_total=total_frames,
             complete=len(rows) == total_frames, device=str(loaded.device), starts=self.config.starts.source,
             frames_without_object=sum(not r.object_found for r in rows),
-            frames_reinitialized=sum(bool(r.reinitialized) for r in rows),
+            frames_reinitialized=sum(bool(r.reinitialized) for r in rows), clock=self.config.clock,
             target_radius_m=None if settings.target_sphere is None else
             float(settings.target_sphere[1]) / loaded.dataparser_scale,
             bank=bank)

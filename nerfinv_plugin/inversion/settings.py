@@ -12,6 +12,7 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 import yaml
 
 from nerfinv_plugin.initialization.bank import BankConfig
+from nerfinv_plugin.inversion.clock import ClockMode
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.sampling import Strategy
 from nerfinv_plugin.inversion.tracker import MonteCarloConfig
@@ -138,6 +139,20 @@ class InvertConfig:
     """How far (attitude) a bank hypothesis must be from every candidate to join them."""
     steps_per_frame: int = 1
     """Monte Carlo steps spent on each frame before moving to the next (1: the thesis' trajectory method)."""
+    clock: ClockMode = "frames"
+    """frames: every frame gets its steps in turn, however long they take; realtime: the camera does not wait
+    (thesis chapter 1): after a frame's steps the next step takes the newest frame observed by then (waiting
+    for one when none is new), all compute charged to the clock (bank, matching, optimisation); the frames
+    skipped get poses interpolated on SE(3) between their neighbours' estimates. Needs timestamps: SHIRT's
+    metadata.json, or --frame-interval-s."""
+    clock_speed: float = 1.0
+    """The clock advances by compute time divided by this: 0.1 simulates a computer ten times slower."""
+    clock_cost_s: float | None = None
+    """Charge this fixed time per optimizer iteration (and nothing else) instead of the compute time measured:
+    the schedule then depends on the settings alone, the same on any machine and after --resume (tests)."""
+    frame_interval_s: float | None = None
+    """Seconds between consecutive frames of the sequence. Unset: SHIRT's metadata.json (pSim.cam_step, 5 s);
+    other layouts then have no timestamps (and no latency)."""
     sampling: Strategy = "interest_region"
     """Which pixels are rendered: random, interest_point (SIFT keypoints) or interest_region (5x5 around
     them, the thesis' best)."""

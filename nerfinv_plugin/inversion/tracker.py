@@ -9,7 +9,7 @@ the starting poses and is inverted alone (parallel iNeRF on each image, the base
 of a frame's last step is the estimate for that frame.
 """
 
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -256,20 +256,26 @@ class Tracker:
         covariance = motion_filter.fit_covariance(best_t, to_target @ kept.double(), losses)
         state.motion, _ = motion_filter.update(state.motion_before, PoseMeasurement(best_t, covariance))
 
-    def schedule(self, frames: int, start: Tensor, steps_per_frame: int = 1, state: TrackerState | None = None,
-                 done: int = 0) -> Iterator[tuple[int, int, int, TrackerState]]:
-        """The one step loop: ``(step index, frame index, step within the frame, state)`` for each of the
-        ``frames * steps_per_frame`` steps from step ``done`` on (a resumed run passes its saved ``state``),
-        the caller taking the step (:meth:`step`) before asking for the next. Frame ``k`` gets steps
-        ``k * steps_per_frame`` to ``(k + 1) * steps_per_frame - 1``. In fixed mode each frame's first
-        step starts from ``start`` again, seeded ``seed + k``."""
+    def schedule(self, frames: int | Iterable[int], start: Tensor, steps_per_frame: int = 1,
+                 state: TrackerState | None = None, done: int = 0) -> Iterator[tuple[int, int, int, TrackerState]]:
+        """The one step loop: ``(step index, frame index, step within the frame, state)`` for each step from
+        step ``done`` on (a resumed run passes its saved ``state``), the caller taking the step
+        (:meth:`step`) before asking for the next. ``frames`` is the order the frames are taken in, each
+        getting ``steps_per_frame`` consecutive steps: a count ``n`` is every frame in turn, ``range(n)``;
+        an iterable may decide each frame when it is asked for, after the steps before it were taken (the
+        realtime clock, :meth:`nerfinv_plugin.inversion.clock.Clock.visits`). In fixed mode each frame's
+        first step starts from ``start`` again, seeded ``seed + k``."""
         if state is None:
             state = self.begin(start)
-        for step_index in range(done, frames * steps_per_frame):
-            k, within = divmod(step_index, steps_per_frame)
-            if within == 0 and self.monte_carlo.mode == "fixed":
-                state = self.begin(start, seed=self.seed + k)
-            yield step_index, k, within, state
+        order = range(frames) if isinstance(frames, int) else frames
+        step_index = 0
+        for k in order:
+            for within in range(steps_per_frame):
+                if step_index >= done:
+                    if within == 0 and self.monte_carlo.mode == "fixed":
+                        state = self.begin(start, seed=self.seed + k)
+                    yield step_index, k, within, state
+                step_index += 1
 
     def run(self, frames: Sequence[Frame], start: Tensor, steps_per_frame: int = 1) -> list[StepRecord]:
         """Every step of :meth:`schedule` over ``frames`` from the candidates ``start`` [N, 4, 4], without

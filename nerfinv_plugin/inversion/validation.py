@@ -103,6 +103,9 @@ INVERT_RULES: dict[str, Rule] = {
     "watch-count": whole(0),  # 0: the bank does not watch the frames
     "watch-deg": number(at_least=0, at_most=180),
     "steps-per-frame": whole(1),
+    "clock-speed": number(above=0),
+    "clock-cost-s": number(above=0),
+    "frame-interval-s": number(above=0),
     "pixels": whole(1),
     "eval-pixels": whole(1),
     "starts.count": whole(1),

@@ -51,6 +51,13 @@ ERROR_VS_TIME = Plan(
     "Rotation error of the estimate after every Monte Carlo step against the run's wall time (thesis fig. "
     "5.2). Filled markers are the poses reported for frames; the gaps between markers are what each step "
     "cost, which shrinks as fewer candidates survive. Dashed lines: 2, 5 and 10 degrees.")
+LATENCY = Plan(
+    "latency_vs_time.png", "Latency (observation to estimate)",
+    "Every frame at the time it was observed on the run's clock (--clock): the rotation error of its pose "
+    "(with ground truth) and its latency, from observation to estimate. Filled markers: frames a Monte Carlo "
+    "step estimated; open: frames the realtime clock skipped, their poses interpolated on SE(3) between "
+    "their neighbours' (known once the later one is). Dashed: the time between frames (a latency under it "
+    "keeps up with the camera); dotted: the first estimate under 5 degrees.")
 ITERATIONS = Plan(
     "loss_error_per_iteration.png", "Loss and error at every iteration",
     "The lowest loss among the candidates at every gradient iteration, all Monte Carlo steps one after "
@@ -177,11 +184,20 @@ def _plot_parts(out: Path, run: Run) -> list[Part]:
     no_truth = "the sequence has no ground truth for these frames, so there is no error to plot"
     no_steps = "no Monte Carlo step has finished yet"
     no_frames = "no frame has finished yet"
+    no_times = "the sequence has no timestamps (SHIRT's metadata.json, or ns-invert --frame-interval-s)"
+    latency = figures.latency_vs_time(run.rows, _frame_interval(run.rows), run.summary.time_to_first_lock_s)
     return [
         _part(out, ERROR_VS_TIME, figures.error_vs_time(run.rows, run.steps), no_truth if run.steps else no_steps),
+        _part(out, LATENCY, latency, no_times if run.rows else no_frames),
         _part(out, ITERATIONS, figures.loss_and_error_per_iteration(run.steps), no_steps),
         _part(out, PER_FRAME, figures.per_frame_errors(run.rows), no_truth if run.rows else no_frames),
     ]
+
+
+def _frame_interval(rows: list[FrameResult]) -> float | None:
+    """Seconds between the run's consecutive frames, read off their observation times."""
+    times = np.array([r.observed_s for r in rows if r.observed_s is not None], float)
+    return float(np.diff(times).min()) if times.size > 1 else None
 
 
 def _why_no_images(run: Run, overlays: bool) -> str:

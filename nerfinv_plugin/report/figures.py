@@ -145,6 +145,46 @@ def error_vs_time(rows: list[FrameResult], steps: list[StepRow]) -> Figure | Non
     return figure
 
 
+def latency_vs_time(rows: list[FrameResult], frame_interval_s: float | None = None,
+                    first_lock_s: float | None = None) -> Figure | None:
+    """Error and latency against the run's clock (thesis fig. 5.2 on the camera's time): one marker per
+    frame at the time it was observed, filled where a step estimated it, open where the realtime clock
+    skipped it and its pose is interpolated. The latency panel has the frame interval as a line (a solver
+    under it keeps up with the camera); the first estimate under 5 degrees is marked in both."""
+    timed = [r for r in rows if r.observed_s is not None and r.latency_s is not None]
+    if not timed:
+        return None
+    with_error = any(r.rotation_deg is not None for r in timed)
+    figure, axes = _figure(9.5, 6.0 if with_error else 3.4, rows=2 if with_error else 1, sharex=True)
+    observed = np.array([r.observed_s for r in timed], float)
+    skipped = np.array([r.interpolated for r in timed], bool)
+    panels = [("rotation error (deg)", np.array([np.nan if r.rotation_deg is None else r.rotation_deg
+                                                 for r in timed], float), "tab:blue")] if with_error else []
+    panels.append(("latency (s)", np.array([r.latency_s for r in timed], float), "tab:purple"))
+    for ax, (label, values, colour) in zip(axes, panels):
+        ax.plot(observed, values, "-", color=colour, lw=1.0, alpha=0.4)
+        ax.plot(observed[~skipped], values[~skipped], "o", color=colour, ms=5, label="estimated by a step")
+        if skipped.any():
+            ax.plot(observed[skipped], values[skipped], "o", color=colour, mfc="white", ms=5,
+                    label="skipped: pose interpolated")
+        if first_lock_s is not None:
+            ax.axvline(first_lock_s, color="tab:green", lw=1, ls=":", label=f"first under 5° ({first_lock_s:.0f} s)")
+        ax.set(ylabel=label)
+    if with_error:
+        _log_if_wide(axes[0], panels[0][1])
+        _thresholds(axes[0])
+        axes[0].set(title="Error and latency of every frame against the run's clock")
+    else:
+        axes[0].set(title="Latency of every frame against the run's clock")
+    if frame_interval_s is not None:
+        axes[-1].axhline(frame_interval_s, color="0.4", ls="--", lw=1, label=f"frame interval ({frame_interval_s:g} s)")
+    axes[-1].set_ylim(bottom=0)
+    axes[-1].set(xlabel="time the frame was observed (s after the first frame, on the run's clock)")
+    for ax in axes:
+        _legend(ax)
+    return figure
+
+
 def _concatenated(steps: list[StepRow], history: Callable[[StepRow], list[float] | None]) -> np.ndarray:
     """A per-iteration history over all steps; NaN where a step has none (frames without truth)."""
     return np.concatenate([np.asarray(history(s) or np.full(len(s.best_loss_per_iteration), np.nan), float)

@@ -5,8 +5,8 @@ import html
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from nerfinv_plugin.results.records import FrameResult, RunSummary
-from nerfinv_plugin.results.summary import SUCCESS_DEG, SUCCESS_REL, rotation_key, translation_key
+from nerfinv_plugin.results.records import Accuracy, FrameResult, RunSummary
+from nerfinv_plugin.results.summary import LOCK_DEG, SUCCESS_DEG, SUCCESS_REL, rotation_key, translation_key
 
 MISSING = "–"
 """What a cell shows when the value does not exist (no ground truth, not recorded)."""
@@ -92,7 +92,25 @@ def run_table(summary: RunSummary) -> str:
         lines += [("time per frame (s, mean)", _number(summary.mean_time_per_frame_s, 1)),
                   ("time in all (s)", _number(summary.wall_time_s, 0)),
                   ("loss of the last frame", _number(summary.final_loss, 5))]
+    lines += clock_lines(summary)
     return _table(("run", ""), ((_e(k), _e(v)) for k, v in lines), text_columns=2)
+
+
+def clock_lines(summary: RunSummary) -> list[tuple[str, str]]:
+    """The clock's figures: frames skipped, latency, the first lock (where the run recorded them)."""
+    lines = []
+    if summary.clock is not None:
+        lines.append(("clock", summary.clock))
+    if summary.frames_skipped is not None:
+        lines.append(("frames skipped (poses interpolated)", f"{summary.frames_skipped} of {summary.frames_done}"))
+    if summary.latency_s is not None:
+        latency = summary.latency_s
+        lines.append(("latency of the estimated frames (s: mean, median, max)",
+                      f"{latency.mean:.2f}, {latency.median:.2f}, {latency.max:.2f}"))
+    if summary.rotation_deg is not None and summary.frames_estimated is not None:
+        lines.append((f"first estimate under {LOCK_DEG:g}° (run's clock)", MISSING if summary.time_to_first_lock_s
+                      is None else f"{summary.time_to_first_lock_s:.1f} s, frame {summary.first_lock_frame}"))
+    return lines
 
 
 ERRORS = (("rotation error (deg)", "rotation_deg", 1, 2), ("translation error (m)", "translation_m", 1, 3),
@@ -103,14 +121,14 @@ STATISTICS = ("mean", "median", "max", "final")
 """Columns of the error table: fields of :class:`ErrorStatistics`."""
 
 
-def errors_table(summary: RunSummary) -> str:
+def errors_table(summary: RunSummary | Accuracy, over: str = "the frames with ground truth") -> str:
     body = [(_e(label), *(_number(getattr(getattr(summary, name), s) * scale, digits) for s in STATISTICS))
             for label, name, scale, digits in ERRORS]
-    return _table(("error over the frames with ground truth", *STATISTICS), body)
+    return _table((_e(f"error over {over}"), *STATISTICS), body)
 
 
-def success_table(summary: RunSummary) -> str:
-    total = summary.frames_with_truth
+def success_table(summary: RunSummary | Accuracy) -> str:
+    total = summary.frames if isinstance(summary, Accuracy) else summary.frames_with_truth
     body = [(_e(f"rotation error under {t:g}°"), _percent(summary.success_rotation[rotation_key(t)], total))
             for t in SUCCESS_DEG]
     body += [(_e(f"translation error under {100 * t:g}% of range"),
@@ -122,16 +140,22 @@ def summary_tables(summary: RunSummary) -> str:
     if summary.rotation_deg is None:
         return run_table(summary) + ('<p class="missing">No ground truth for these frames: errors and success '
                                      "rates cannot be computed.</p>")
-    return run_table(summary) + errors_table(summary) + success_table(summary)
+    tables = run_table(summary) + errors_table(summary, "every frame with ground truth, interpolated ones included"
+                                               if summary.frames_skipped else "the frames with ground truth")
+    tables += success_table(summary)
+    if summary.estimated_only is not None:
+        estimated = summary.estimated_only
+        tables += errors_table(estimated, f"the {estimated.frames} estimated frames alone") + success_table(estimated)
+    return tables
 
 
 def frames_table(rows: list[FrameResult]) -> str:
     header = ("frame", "image", "rotation (deg)", "translation (m)", "translation (% of range)", "SPEC score",
-              "loss", "candidates", "dropped", "time (s)")
-    body = [(str(r.frame), _e(r.name), _number(r.rotation_deg), _number(r.translation_m, 3),
-             MISSING if r.translation_rel is None else _number(100 * r.translation_rel),
+              "loss", "candidates", "dropped", "time (s)", "latency (s)")
+    body = [(str(r.frame), _e(r.name + (" (interpolated)" if r.interpolated else "")), _number(r.rotation_deg),
+             _number(r.translation_m, 3), MISSING if r.translation_rel is None else _number(100 * r.translation_rel),
              _number(r.score, 4), _number(r.loss, 5), str(r.candidates), str(r.dropped),
-             _number(r.wall_time_s, 1)) for r in rows]
+             _number(r.wall_time_s, 1), _number(r.latency_s, 1)) for r in rows]
     return f'<div class="scroll">{_table(header, body, text_columns=2)}</div>'
 
 

@@ -46,10 +46,10 @@ class FrameResult:
     """The target's position in the camera frame, metres."""
     c2w_model: list[list[float]]
     """The estimate as the model-frame camera-to-world matrix (OpenGL axes), 4 x 4."""
-    loss: float
-    """Loss of the estimate on the frame's ranking pixels."""
+    loss: float | None
+    """Loss of the estimate on the frame's ranking pixels; ``None`` on an interpolated frame."""
     candidates: int
-    """Candidates of the frame's last step."""
+    """Candidates of the frame's last step (0 on an interpolated frame)."""
     dropped: int
     """Candidates the last step dropped for a non-finite pose, loss or gradient."""
     object_found: bool = True
@@ -58,6 +58,16 @@ class FrameResult:
     """The bank was asked again because the object was lost."""
     bank_added: int = 0
     """Bank hypotheses that joined the frame's candidates."""
+    interpolated: bool = False
+    """The realtime clock skipped the frame: its pose is interpolated on SE(3) between the estimates of the
+    frames before and after it, and no step looked at it."""
+    observed_s: float | None = None
+    """When the frame was observed on the run's clock (seconds after the first frame); ``None`` when the
+    sequence has no timestamps."""
+    estimated_s: float | None = None
+    """When its estimate was ready on the run's clock (an interpolated frame: when the later estimate was)."""
+    latency_s: float | None = None
+    """``estimated_s - observed_s``: how long after it was observed the frame's pose was known."""
     rotation_deg: float | None = None
     translation_m: float | None = None
     translation_rel: float | None = None
@@ -102,6 +112,10 @@ class StepRow:
     bank_added: int = 0
     """Bank hypotheses that joined the candidates before this step."""
     best_loss_per_iteration: list[float]
+    clock_start_s: float | None = None
+    """The run's clock when the step began (seconds after the first frame was observed)."""
+    clock_end_s: float | None = None
+    """The run's clock when it ended: a resumed run continues from the last step's."""
     best_error_deg_per_iteration: list[float] | None = None
     """The lowest rotation error among the candidates at every iteration; ``None`` without ground truth."""
     error_of_best_loss_per_iteration: list[float] | None = None
@@ -156,7 +170,31 @@ class BankSummary:
 
 
 STATISTICS = ("rotation_deg", "translation_m", "translation_rel", "score")
-"""The fields of :class:`RunSummary` that are :class:`ErrorStatistics`."""
+"""The error fields of :class:`RunSummary` and :class:`Accuracy`, each an :class:`ErrorStatistics`."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Accuracy:
+    """Errors and success rates over some of a run's frames with ground truth (the estimated ones alone, in
+    :attr:`RunSummary.estimated_only`)."""
+
+    frames: int
+    rotation_deg: ErrorStatistics
+    translation_m: ErrorStatistics
+    translation_rel: ErrorStatistics
+    score: ErrorStatistics
+    success_rotation: dict[str, float]
+    success_translation: dict[str, float]
+
+    def to_json(self) -> dict:
+        return {k: v.to_json() if isinstance(v, ErrorStatistics) else v for k, v in _json(self, True).items()}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "Accuracy":
+        values: dict[str, Any] = dict(_known(cls, data))
+        for key in STATISTICS:
+            values[key] = ErrorStatistics.from_json(values[key])
+        return cls(**values)
 
 
 @dataclass(kw_only=True)
@@ -200,17 +238,36 @@ class RunSummary:
     success_translation: dict[str, float] | None = None
     """The same under each relative translation threshold, by
     :func:`~nerfinv_plugin.results.summary.translation_key`."""
+    clock: str | None = None
+    """``--clock``: ``frames`` (every frame in turn) or ``realtime`` (the newest frame at every step)."""
+    frames_estimated: int | None = None
+    """Frames a step looked at; the others were skipped by the realtime clock and interpolated."""
+    frames_skipped: int | None = None
+    clock_end_s: float | None = None
+    """The run's clock when the last frame done was estimated (seconds after the first was observed)."""
+    latency_s: ErrorStatistics | None = None
+    """Latency (observation to estimate) of the estimated frames; ``None`` without timestamps."""
+    time_to_first_lock_s: float | None = None
+    """The run's clock when the first estimate under
+    :data:`~nerfinv_plugin.results.summary.LOCK_DEG` was ready (ground truth needed); ``None``: never."""
+    first_lock_frame: int | None = None
+    """That frame's position in the sequence."""
+    estimated_only: Accuracy | None = None
+    """The errors and success rates over the estimated frames alone, when some frames were interpolated
+    (the fields above count every frame, interpolated ones included)."""
 
     def to_json(self) -> dict:
-        return {k: v.to_json() if isinstance(v, (ErrorStatistics, BankSummary)) else v
+        return {k: v.to_json() if isinstance(v, (ErrorStatistics, BankSummary, Accuracy)) else v
                 for k, v in _json(self, keep_none=False).items()}
 
     @classmethod
     def from_json(cls, data: dict) -> "RunSummary":
         values: dict[str, Any] = dict(_known(cls, data))
-        for key in STATISTICS:
+        for key in (*STATISTICS, "latency_s"):
             if values.get(key) is not None:
                 values[key] = ErrorStatistics.from_json(values[key])
+        if values.get("estimated_only") is not None:
+            values["estimated_only"] = Accuracy.from_json(values["estimated_only"])
         if values.get("bank") is not None:
             values["bank"] = BankSummary.from_json(values["bank"])
         return cls(**values)
