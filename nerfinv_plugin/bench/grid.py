@@ -18,7 +18,8 @@ still compares every variant on the same runs.
 
 import dataclasses
 import re
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -241,18 +242,39 @@ class GridEvents:
     begin: Callable[[list[dict]], None] = lambda records: None
     """The cells' state before this invocation runs any (finished ones are ``done``)."""
     cell_start: Callable[[Cell, bool], None] = lambda cell, resumed: None
-    """A cell's inversion starts; ``resumed`` when it continues an interrupted one."""
+    """A cell's inversion starts in this process; ``resumed`` when it continues an interrupted one."""
     cell_end: Callable[[dict], None] = lambda record: None
     """A cell ran (done or failed); its record is already in the tables."""
     inversion: Callable[[Cell], Events] = lambda cell: Events()
-    """The events of a cell's inversion (its steps and frames)."""
+    """The events of a cell's inversion in this process (its steps and frames)."""
+    info: Callable[[str], None] = lambda message: None
+    """Where the cells run, when not in this process."""
+
+
+def run_inversion(config: InvertConfig, path: Path, events: Events | None = None) -> None:
+    """A cell's work, wherever it runs: the inversion of ``config`` in the run folder ``path``, started
+    afresh or continued from the step its ``state.pt`` holds."""
+    Inversion(config, RunFolder(path), events or Events()).run()
+
+
+CellRunner = Callable[["Bench", list[Cell]], Iterator[tuple[Cell, dict]]]
+"""Runs the given pending cells of a bench and yields each cell with its record (from
+:meth:`Bench.finished` or :meth:`Bench.failed`) as soon as it ended, in any order. The local runner is
+:func:`in_process`; ``nerfinv_plugin.bench.ray_runner.RayRunner`` runs cells as Ray tasks."""
+
+
+def in_process(bench: "Bench", cells: list[Cell]) -> Iterator[tuple[Cell, dict]]:
+    """One cell after the other in this process."""
+    for cell in cells:
+        yield cell, bench.run_here(cell)
 
 
 class Bench:
-    """Runs a grid into ``<out>/<grid name>/``."""
+    """Runs a grid into ``<out>/<grid name>/``; the runner chooses where the cells run, the tables are
+    written here."""
 
-    def __init__(self, grid: Grid, out: Path, events: GridEvents | None = None):
-        self.grid, self.events = grid, events or GridEvents()
+    def __init__(self, grid: Grid, out: Path, events: GridEvents | None = None, runner: CellRunner = in_process):
+        self.grid, self.events, self.runner = grid, events or GridEvents(), runner
         self.folder = Path(out) / grid.name
         self.cells = [Cell(case, variant, seed) for seed in grid.seeds for case in grid.cases
                       for variant in grid.variants]
@@ -268,16 +290,18 @@ class Bench:
         return new_run_folder(self.configs[cell.label])
 
     def run(self) -> list[dict]:
-        """Run every cell not finished yet; return one record per cell, in grid order."""
+        """Run every cell not finished yet; return one record per cell, in grid order. The tables are
+        rewritten as each cell ends, so an interruption keeps every cell that ended."""
         records = {cell.label: self._snapshot(cell) for cell in self.cells}
         self._write(records)
         self.events.begin(list(records.values()))
+        pending = [cell for cell in self.cells if records[cell.label]["status"] == "pending"]
         try:
-            for cell in self.cells:
-                if records[cell.label]["status"] == "pending":
-                    records[cell.label] = self._run_cell(cell)
+            with closing(self.runner(self, pending)) as ended:  # closed at once on Ctrl-C: it stops what runs
+                for cell, record in ended:
+                    records[cell.label] = record
                     self._write(records)
-                    self.events.cell_end(records[cell.label])
+                    self.events.cell_end(record)
         finally:
             pixels = {v.label: v.overrides["pixels"] for v in self.grid.variants if "pixels" in v.overrides}
             write_plots(self.folder, self.grid.name, list(records.values()), pixels)
@@ -290,34 +314,40 @@ class Bench:
         return {"cell": cell.label, "case": cell.case.label, "variant": cell.variant.label, "seed": cell.seed,
                 "status": status, "run": str(self.run_dir(cell)), **values}
 
-    def _finished(self, cell: Cell) -> dict:
-        return self._record(cell, "done", **cell_metrics(RunFolder(self.run_dir(cell)).rows()))
+    def failed(self, cell: Cell, error: str) -> dict:
+        """The record of a cell that raised ``error`` (one line)."""
+        return self._record(cell, "failed", error=error)
+
+    def finished(self, cell: Cell) -> dict:
+        """The record of a cell whose run folder is complete, scored from its results; failed when they
+        cannot be scored (no ground truth)."""
+        try:
+            return self._record(cell, "done", **cell_metrics(RunFolder(self.run_dir(cell)).rows()))
+        except Exception as err:
+            return self.failed(cell, one_line(err))
 
     def _snapshot(self, cell: Cell) -> dict:
         """What the cell's folder holds before this invocation runs anything."""
         if not (self.run_dir(cell) / SUMMARY).is_file():
             return self._record(cell, "pending")
         try:
-            self._check_settings(cell)
-            return self._finished(cell)
-        except Exception as err:
-            return self._record(cell, "failed", error=one_line(err))
+            self.check_settings(cell)
+        except GridError as err:
+            return self.failed(cell, one_line(err))
+        return self.finished(cell)
 
-    def _run_cell(self, cell: Cell) -> dict:
+    def run_here(self, cell: Cell) -> dict:
+        """Run (or continue) a cell in this process and return its record."""
         path = self.run_dir(cell)
         try:
-            self._check_settings(cell)
-            resumed = (path / CONFIG).is_file()
-            self.events.cell_start(cell, resumed)
-            events = self.events.inversion(cell)
-            inversion = Inversion.resume(path, events) if resumed else Inversion.create(self.configs[cell.label],
-                                                                                         events)
-            inversion.run()
-            return self._finished(cell)
+            self.check_settings(cell)
+            self.events.cell_start(cell, (path / CONFIG).is_file())
+            run_inversion(self.configs[cell.label], path, self.events.inversion(cell))
         except Exception as err:
-            return self._record(cell, "failed", error=one_line(err))
+            return self.failed(cell, one_line(err))
+        return self.finished(cell)
 
-    def _check_settings(self, cell: Cell) -> None:
+    def check_settings(self, cell: Cell) -> None:
         """Refuse a folder started with other settings than the cell's now (an edited grid file)."""
         saved = self.run_dir(cell) / CONFIG
         if not saved.is_file():
