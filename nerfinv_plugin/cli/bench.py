@@ -23,9 +23,11 @@ from tyro.conf import Positional, UseAppendAction, arg
 from nerfinv_plugin.bench.grid import (
     Bench,
     Cell,
+    CellRunner,
     Grid,
     GridError,
     GridEvents,
+    in_process,
     merge,
     parse_overrides,
     read_grid,
@@ -33,6 +35,7 @@ from nerfinv_plugin.bench.grid import (
 )
 from nerfinv_plugin.bench.observed import read_observed
 from nerfinv_plugin.bench.perf import compare_loops, latency_rows, latency_runs, profile_ours, sweep
+from nerfinv_plugin.bench.ray_runner import RayRunner
 from nerfinv_plugin.bench.recall import bank_benchmark
 from nerfinv_plugin.bench.render_speed import render_problem, render_speed
 from nerfinv_plugin.bench.sampling import Sampling
@@ -75,6 +78,22 @@ class GridBench:
     override: tuple[str, ...] = ()
     """Base settings KEY=VALUE on top of the grid file's, for every cell, with dotted keys and YAML values:
     device=cuda stop=5 monte_carlo.keep=[5,5]."""
+    ray: Annotated[tuple[str, ...] | None, arg(metavar="[ADDRESS]")] = None
+    """Run the cells side by side as Ray tasks: --ray alone starts a local Ray for this run (this machine's
+    CPUs), --ray ADDRESS joins an existing cluster (ray.init's address: auto, HOST:PORT, ray://HOST:10001).
+    Needs pip install 'nerfinv[ray]'. Unset: one cell after the other in this process."""
+    ray_cpus: int = 1
+    """With --ray: CPUs each cell asks for; torch in the cell uses as many threads."""
+    ray_gpus: float = 0.25
+    """With --ray: share of a GPU each cell asks for when the cluster has GPUs and the cell's device is not
+    cpu (0.25: four cells per GPU)."""
+    ray_retries: int = 3
+    """With --ray: times Ray runs a cell again whose worker process died (a cell that raises is recorded as
+    failed, not retried)."""
+    ray_shared_storage: bool = False
+    """With --ray: every node sees the grid's paths (models, sequences, --out) at the same place and can run
+    in this directory, so cells open and write them there; otherwise the models and sequences are sent
+    through Ray's object store and each cell's results come back to this machine."""
 
     def load(self) -> Grid:
         """The grid file with this command line's replacements."""
@@ -88,8 +107,20 @@ class GridBench:
             changes["preset"] = self.preset
         return dataclasses.replace(grid, **changes)
 
+    def runner(self) -> CellRunner:
+        """Where the cells run: here, or on Ray."""
+        ray_options = (self.ray_cpus, self.ray_gpus, self.ray_retries, self.ray_shared_storage)
+        if self.ray is None:
+            if ray_options != (1, 0.25, 3, False):
+                raise GridError("--ray-cpus, --ray-gpus, --ray-retries and --ray-shared-storage apply to --ray; "
+                                "add --ray (a local Ray) or --ray ADDRESS")
+            return in_process
+        if len(self.ray) > 1:
+            raise GridError(f"--ray takes at most one address, not {' '.join(self.ray)}")
+        return RayRunner(self.ray[0] if self.ray else None, *ray_options)
+
     def main(self) -> None:
-        bench_grid(self.load(), self.out, Console(soft_wrap=True))  # a cell's error on one line
+        bench_grid(self.load(), self.out, Console(soft_wrap=True), self.runner())  # a cell's error on one line
 
 
 def _cell_line(record: dict) -> str:
@@ -105,8 +136,8 @@ def _variant_line(group: dict) -> str:
     return f"{group['variant']}: {counts} ({group['failed']} failed, {pending} to run)"
 
 
-def bench_grid(grid: Grid, out: Path, console: Console) -> list[dict]:
-    """Run with a progress display: cells done of all, and the steps of the cell running."""
+def bench_grid(grid: Grid, out: Path, console: Console, runner: CellRunner = in_process) -> list[dict]:
+    """Run with a progress display: cells done of all, and the steps of the cell running here."""
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, console=console) as progress:
         cells = progress.add_task("cells done", total=None)
@@ -129,14 +160,16 @@ def bench_grid(grid: Grid, out: Path, console: Console) -> list[dict]:
                           step=lambda row: progress.advance(steps),
                           warn=lambda message: console.print(f"[yellow]{cell.label}: {escape(message)}[/yellow]"))
 
-        bench = Bench(grid, out, GridEvents(begin, cell_start, cell_end, inversion))
+        bench = Bench(grid, out, GridEvents(begin, cell_start, cell_end, inversion, info=console.print), runner)
         console.print(f"grid {grid.name}: {len(bench.cells)} cells into {bench.folder}")
         try:
             records = bench.run()
         except KeyboardInterrupt:
+            sent = isinstance(runner, RayRunner) and not runner.shared_storage
+            running = "cells that were running on Ray start again" if sent else \
+                "the cells that were running resume where they stopped"
             raise Interrupted(f"interrupted; the finished cells are in {bench.folder / TABLE_MD}. Run the same "
-                              "command again to continue (the cell that was running resumes where it stopped)") \
-                from None
+                              f"command again to continue ({running})") from None
     for group in aggregate(records, by_case=False):
         console.print(f"[bold]{_variant_line(group)}[/bold]")
     console.print(f"table: {bench.folder / TABLE_MD}")
