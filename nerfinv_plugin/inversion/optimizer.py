@@ -24,6 +24,7 @@ from torch import Tensor
 from nerfinv_plugin.geometry.se3 import exp_se3
 from nerfinv_plugin.inversion.losses import LossName, per_ray_loss
 from nerfinv_plugin.inversion.sampling import PixelSampler
+from nerfinv_plugin.inversion.silhouette import BandPixels, Silhouette, silhouette_per_ray
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, render_chunks
 
@@ -41,6 +42,16 @@ class OptimizerConfig:
     lr_decay_iterations: int = 20
     loss: LossName = "mse"
     """Photometric loss: mse (thesis), mape (Parallel Inversion) or huber."""
+    colour_weight: float = 1.0
+    """Factor on the photometric loss; 0 with a silhouette weight optimizes the silhouette alone."""
+    silhouette_weight: float = 0.0
+    """Factor on the silhouette loss (the model's accumulation against the observed object mask, on a band
+    about its outline: :mod:`nerfinv_plugin.inversion.silhouette`), added to the photometric loss. 0: off.
+    Needs a model with an accumulation output."""
+    silhouette_pixels: int = 128
+    """Band pixels drawn per iteration for the silhouette loss, besides the photometric pixels."""
+    silhouette_band_px: int = 3
+    """Half-width of the band about the observed outline the silhouette pixels come from, in pixels."""
     screw_origin: Literal["target", "world"] = "target"
     """Point the screw motions turn about: the target centre, or the model frame's origin (thesis)."""
     patience: int | None = None
@@ -95,16 +106,36 @@ def _centred(centre: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor, observed: Tensor,
-                     loss: LossName, backward: bool, settings: RenderSettings = AS_TRAINED) -> Tensor:
-    """Mean loss of each candidate [N] over ``pixels``, rendered under ``settings``; with ``backward``,
-    gradients accumulate into ``c2w.grad`` chunk by chunk, so memory stays bounded by one chunk."""
+                     loss: LossName, backward: bool, settings: RenderSettings = AS_TRAINED,
+                     band: BandPixels | None = None, colour_weight: float = 1.0) -> Tensor:
+    """Loss of each candidate [N]: ``colour_weight`` times the mean photometric loss over ``pixels``, plus,
+    with ``band``, its weight times the mean silhouette loss over the band pixels, all rendered in one pass
+    under ``settings``. With ``backward``, gradients accumulate into ``c2w.grad`` chunk by chunk, so memory
+    stays bounded by one chunk."""
     n, p = c2w.shape[0], pixels.shape[0]
     totals = torch.zeros(n, dtype=torch.float32, device=loaded.device)
+    colour_scale = torch.full((p,), colour_weight / p, device=loaded.device)
+    if band is not None:  # band rays follow the colour rays; their colour is not compared
+        b = band.pixels.shape[0]
+        pixels = torch.cat([pixels, band.pixels.to(pixels.device)])
+        observed = torch.cat([observed, torch.zeros(b, 3, device=observed.device, dtype=observed.dtype)])
+        colour_scale = torch.cat([colour_scale, torch.zeros(b, device=loaded.device)])
+        band_scale = torch.cat([torch.zeros(p, device=loaded.device), torch.full((b,), band.weight / b,
+                                                                                 device=loaded.device)])
+        inside = torch.cat([torch.zeros(p, device=loaded.device), band.inside.to(loaded.device)]).repeat(n)
+        band_scale = band_scale.repeat(n)
+        p += b
     targets = observed.repeat(n, 1)
+    colour_scale = colour_scale.repeat(n)
     candidate_of_ray = torch.arange(n, device=loaded.device).repeat_interleave(p)
     with torch.set_grad_enabled(backward):
         for part, out in render_chunks(loaded, c2w, intrinsics, pixels, settings):
-            per_ray = per_ray_loss(loss, out.rgb, targets[part]) / p
+            per_ray = per_ray_loss(loss, out.rgb, targets[part]) * colour_scale[part]
+            if band is not None:
+                if out.accumulation is None:
+                    raise ValueError(f"{type(loaded.model).__name__} gives no accumulation output: the silhouette "
+                                     "loss cannot be used with it (set --optimizer.silhouette-weight 0)")
+                per_ray = per_ray + silhouette_per_ray(out.accumulation, inside[part]) * band_scale[part]
             if backward and per_ray.requires_grad:  # rays that missed the target carry no gradient
                 # Non-finite rays must not poison the others' gradients; their candidates get dropped.
                 torch.where(torch.isfinite(per_ray), per_ray, 0.0).sum().backward()
@@ -128,15 +159,18 @@ class PreparedFrame:
     """[3] target centre in the model frame, on the model's device: screw motions turn about it."""
     error_fn: Callable[[Tensor], Tensor] | None = None
     """Poses [N, 4, 4] to rotation errors in degrees [N], recorded in the history when the truth is known."""
+    silhouette: Silhouette | None = None
+    """The observed object mask's band, when the silhouette loss is on and the frame has a mask."""
 
     @classmethod
     def from_image(cls, loaded: LoadedModel, image: np.ndarray | Tensor, intrinsics: Intrinsics,
                    sampler: PixelSampler, eval_pixels: Tensor, centre: Tensor,
-                   error_fn: Callable[[Tensor], Tensor] | None = None) -> "PreparedFrame":
+                   error_fn: Callable[[Tensor], Tensor] | None = None,
+                   silhouette: Silhouette | None = None) -> "PreparedFrame":
         """From the observed ``image`` [H, W, 3] ``uint8`` RGB."""
         observed = torch.as_tensor(image, dtype=torch.float32, device=loaded.device) / 255.0
         return cls(observed, intrinsics, sampler, torch.as_tensor(eval_pixels).to(loaded.device),
-                   centre.to(loaded.device, torch.float32), error_fn)
+                   centre.to(loaded.device, torch.float32), error_fn, silhouette)
 
     def colours(self, pixels: Tensor) -> Tensor:
         """Observed colours [P, 3] at ``pixels`` [P, 2]."""
@@ -180,13 +214,14 @@ class CandidateStep:
         step, then drop, prune or stop. Returns the iteration's history record."""
         device, config, active = self.loaded.device, self.config, self.active
         pixels = torch.as_tensor(self.frame.sampler.sample(rng), device=device)
+        band = None if self.frame.silhouette is None else self.frame.silhouette.draw(rng)
         c2w = self.poses()
         rendered = torch.nonzero(active).flatten()
         leaf = c2w[rendered].detach().requires_grad_(True)
         losses = torch.full((c2w.shape[0],), torch.inf, device=device)
         losses[rendered] = candidate_losses(self.loaded, leaf, self.frame.intrinsics, pixels,
                                             self.frame.colours(pixels), config.loss, backward=True,
-                                            settings=self.settings)
+                                            settings=self.settings, band=band, colour_weight=config.colour_weight)
         grad = torch.zeros_like(c2w)
         grad[rendered] = leaf.grad
         # A pose, loss or gradient that is not finite ends the candidate. nerfstudio's renderer turns NaN
@@ -219,6 +254,10 @@ class CandidateStep:
         if config.patience is not None and self._stalled >= config.patience:
             self.stopped = True
 
+    def _eval_band(self) -> BandPixels | None:
+        silhouette = self.frame.silhouette
+        return None if silhouette is None else silhouette.band(silhouette.eval_pixels)
+
     def result(self) -> StepResult:
         """The final poses ranked on the frame's evaluation pixels."""
         final = self.poses().detach()
@@ -227,7 +266,8 @@ class CandidateStep:
         pixels = self.frame.eval_pixels
         losses[kept] = candidate_losses(self.loaded, final[kept], self.frame.intrinsics, pixels,
                                         self.frame.colours(pixels), self.config.loss, backward=False,
-                                        settings=self.settings)
+                                        settings=self.settings, band=self._eval_band(),
+                                        colour_weight=self.config.colour_weight)
         self.alive &= ~self.active | torch.isfinite(losses)
         losses = torch.where(self.active & self.alive, losses, torch.inf)
         dropped = torch.nonzero(~self.alive).flatten().tolist()

@@ -1,0 +1,113 @@
+"""The silhouette term: the band about the outline, the loss against a hand-computed case, the combined loss
+against separate renders, and that the silhouette alone pulls a shifted candidate back onto the object."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from nerfinv_plugin.initialization.initializer import silhouette_iou
+from nerfinv_plugin.inversion.optimizer import OptimizerConfig, PreparedFrame, candidate_losses, optimize_candidates
+from nerfinv_plugin.inversion.sampling import PixelSampler
+from nerfinv_plugin.inversion.silhouette import EVAL_BAND_PIXELS, Silhouette, outline_band, silhouette_per_ray
+from nerfinv_plugin.model.loading import load_model
+from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, render, render_image
+
+
+def test_the_band_holds_the_pixels_next_to_the_outline_on_both_sides():
+    mask = np.zeros((8, 8), bool)
+    mask[2:6, 2:6] = True  # a 4 x 4 square
+    band = outline_band(mask, 1)
+    expected = np.zeros((8, 8), bool)
+    expected[1:7, 1:7] = True  # dilated by one
+    expected[3:5, 3:5] = False  # minus the square eroded by one
+    assert np.array_equal(band, expected)
+    assert not outline_band(np.zeros((8, 8), bool), 2).any()
+
+
+def test_silhouette_loss_against_a_hand_computed_case():
+    accumulation = torch.tensor([[1.0], [0.25], [0.0], [0.5]])
+    inside = torch.tensor([1.0, 1.0, 0.0, 0.0])
+    # (1-1)^2, (0.25-1)^2, (0-0)^2, (0.5-0)^2
+    assert torch.allclose(silhouette_per_ray(accumulation, inside), torch.tensor([0.0, 0.5625, 0.0, 0.25]))
+
+
+def test_the_ranking_band_pixels_are_fixed_by_the_mask_and_capped():
+    mask = np.zeros((150, 240), bool)
+    mask[30:120, 40:200] = True
+    first = Silhouette.from_mask(mask, 3, 64, 1.0)
+    second = Silhouette.from_mask(mask, 3, 64, 1.0)
+    assert first is not None and second is not None
+    assert torch.equal(first.eval_pixels, second.eval_pixels)
+    assert first.eval_pixels.shape == (EVAL_BAND_PIXELS, 2)
+    band = outline_band(mask, 3)
+    assert band[first.eval_pixels[:, 0], first.eval_pixels[:, 1]].all()
+    drawn = first.draw(np.random.default_rng(0))
+    assert band[drawn.pixels[:, 0], drawn.pixels[:, 1]].all()
+    assert torch.equal(drawn.inside, torch.as_tensor(mask[drawn.pixels[:, 0], drawn.pixels[:, 1]], dtype=torch.float32))
+    assert Silhouette.from_mask(np.zeros((10, 10), bool), 3, 64, 1.0) is None
+
+
+@pytest.fixture(scope="module")
+def toy_view(toy_run):
+    """The toy model, a held-out camera of its data, the model's own image there and its mask
+    (accumulation above one half) as the observed frame."""
+    config, data = toy_run
+    loaded = load_model(config, device="cpu")
+    meta = json.loads((data / "transforms_test.json").read_text())
+    width, height = int(meta.get("w", 80)), int(meta.get("h", 50))
+    focal = 0.5 * width / np.tan(0.5 * meta["camera_angle_x"])
+    intrinsics = Intrinsics(focal, focal, width / 2, height / 2, width, height)
+    truth = torch.as_tensor(loaded.dataset_to_model(np.array(meta["frames"][0]["transform_matrix"])),
+                            dtype=torch.float32)
+    rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    pixels = torch.stack([rows.reshape(-1), cols.reshape(-1)], 1)
+    with torch.no_grad():
+        accumulation = render(loaded, truth[None], intrinsics, pixels).accumulation.reshape(height, width)
+    image = (render_image(loaded, truth.numpy(), intrinsics) * 255).round().astype(np.uint8)
+    mask = accumulation.numpy() > 0.5
+    assert 0.02 < mask.mean() < 0.8  # the object is in the view, and not all of it
+    centre = torch.as_tensor(loaded.dataset_to_model(np.eye(4))[:3, 3], dtype=torch.float32)
+    return loaded, intrinsics, truth, image, mask, centre
+
+
+def _shifted(truth: torch.Tensor, metres: float, scale: float) -> torch.Tensor:
+    """``truth`` moved along its own x axis (sideways in the image)."""
+    pose = truth.clone()
+    pose[:3, 3] += metres * scale * pose[:3, 0]
+    return pose
+
+
+def test_the_combined_loss_is_colour_plus_weight_times_silhouette(toy_view):
+    loaded, intrinsics, truth, image, mask, _ = toy_view
+    poses = torch.stack([truth, _shifted(truth, 0.3, loaded.dataparser_scale)])
+    silhouette = Silhouette.from_mask(mask, 2, 48, 0.7)
+    band = silhouette.band(silhouette.eval_pixels)
+    pixels = torch.as_tensor(PixelSampler("random", 64).prepare(image).sample(np.random.default_rng(1)))
+    observed = torch.as_tensor(image, dtype=torch.float32)[pixels[:, 0], pixels[:, 1]] / 255.0
+    combined = candidate_losses(loaded, poses, intrinsics, pixels, observed, "mse", False, band=band,
+                                colour_weight=0.5)
+    with torch.no_grad():
+        colour = render(loaded, poses, intrinsics, pixels).rgb
+        accumulation = render(loaded, poses, intrinsics, band.pixels).accumulation[..., 0]
+    reference = 0.5 * ((colour - observed) ** 2).mean((1, 2)) + 0.7 * ((accumulation - band.inside) ** 2).mean(1)
+    assert torch.allclose(combined, reference, rtol=1e-4, atol=1e-7)
+    assert combined[1] > combined[0]  # the shifted pose puts the outline elsewhere
+
+
+def test_the_silhouette_alone_pulls_a_shifted_candidate_back_onto_the_mask(toy_view):
+    loaded, intrinsics, truth, image, mask, centre = toy_view
+    start = _shifted(truth, 0.25, loaded.dataparser_scale)[None]
+    sampler = PixelSampler("random", 32).prepare(image)
+    eval_pixels = torch.as_tensor(sampler.sample(np.random.default_rng(0)))
+    silhouette = Silhouette.from_mask(mask, 3, 128, 1.0)
+    frame = PreparedFrame.from_image(loaded, image, intrinsics, sampler, eval_pixels, centre, silhouette=silhouette)
+    config = OptimizerConfig(iterations=30, colour_weight=0.0, silhouette_weight=1.0)
+    result = optimize_candidates(loaded, start, frame, config, np.random.default_rng(0))
+    # Judged by the overlap of whole rendered silhouettes, not by the loss the optimizer saw. (Not by the
+    # camera position: on a small object a sideways shift and a turn towards it keep nearly the same
+    # outline, which is why the colour term stays.)
+    before = silhouette_iou(loaded, AS_TRAINED, start[0], intrinsics, mask)
+    after = silhouette_iou(loaded, AS_TRAINED, result.c2w[0], intrinsics, mask)
+    assert before < 0.5 and after > 0.7, (before, after)  # measured: 0.34 -> 0.79
