@@ -186,8 +186,9 @@ class Inversion:
                   for f in sequence.frames]
         detections, detect_s = self._detections(sequence)
         setup = time.perf_counter()  # from here on, everything is compute the clock is charged for
-        if c.rank_region == "object":
-            for frame, detection in zip(frames, detections):
+        for frame, detection in zip(frames, detections):
+            frame.mask = None if detection is None else detection.mask
+            if c.rank_region == "object":
                 frame.rank_region = None if detection is None else detection.around(RANK_MARGIN)
         centre = torch.as_tensor(loaded.point_to_model(np.asarray(c.target)), dtype=torch.float32)
         settings, radius = bound_rays(loaded, centre, c.render)

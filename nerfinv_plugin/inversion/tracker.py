@@ -27,6 +27,7 @@ from nerfinv_plugin.inversion.optimizer import (
     optimize_candidates,
 )
 from nerfinv_plugin.inversion.sampling import PixelSampler, Strategy
+from nerfinv_plugin.inversion.silhouette import Silhouette
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings
 
@@ -85,6 +86,8 @@ class Frame:
     rank_region: np.ndarray | None = None
     """[H, W] bool: where the ranking pixels are drawn (about the object, so that most of them tell
     candidates apart). None: anywhere in the image."""
+    mask: np.ndarray | None = None
+    """[H, W] bool: the object as observed, for the silhouette loss. None: no silhouette term here."""
 
 
 @dataclass
@@ -194,8 +197,12 @@ class Tracker:
         error_fn = None
         if self.error_fn is not None and frame.c2w_true is not None:
             error_fn = lambda poses, truth=frame.c2w_true: self.error_fn(poses, truth)  # noqa: E731
+        silhouette = None
+        if optimizer.silhouette_weight > 0 and frame.mask is not None:
+            silhouette = Silhouette.from_mask(frame.mask, optimizer.silhouette_band_px, optimizer.silhouette_pixels,
+                                              optimizer.silhouette_weight, self.loaded.device)
         prepared = PreparedFrame.from_image(self.loaded, frame.image, frame.intrinsics, sampler, eval_pixels,
-                                            self.centre, error_fn)
+                                            self.centre, error_fn, silhouette)
         result = optimize_candidates(self.loaded, state.candidates, prepared, optimizer, state.rng, on_iteration,
                                      min_candidates=keep_count(mc, state.step, state.candidates.shape[0]),
                                      settings=self.render)
