@@ -169,23 +169,17 @@ class MotionFilter:
         covariance = f @ state.covariance @ f.T + q
         return replace(state, pose=motion @ state.pose, covariance=(covariance + covariance.T) / 2)
 
-    def mahalanobis2(self, predicted: MotionState, measurement: PoseMeasurement) -> float:
-        """Squared Mahalanobis distance of the measurement's innovation (what the gate compares)."""
-        y = log_se3(measurement.pose.double() @ torch.linalg.inv(predicted.pose))
-        s = predicted.covariance[:6, :6] + measurement.covariance
-        return float(y @ torch.linalg.solve(s, y))
-
     def update(self, predicted: MotionState | None, measurement: PoseMeasurement) -> tuple[MotionState, Verdict]:
         """The state after ``measurement``, from the prediction for its frame (None: the first frame)."""
         if predicted is None:
             return self.start(measurement), "started"
-        if self.mahalanobis2(predicted, measurement) > self.gate:
+        y = log_se3(measurement.pose.double() @ torch.linalg.inv(predicted.pose))  # innovation
+        p = predicted.covariance
+        s = p[:6, :6] + measurement.covariance
+        if float(y @ torch.linalg.solve(s, y)) > self.gate:  # squared Mahalanobis distance
             if predicted.rejections >= self.config.max_rejections:
                 return self.start(measurement), "restarted"
             return replace(predicted, rejections=predicted.rejections + 1), "rejected"
-        y = log_se3(measurement.pose.double() @ torch.linalg.inv(predicted.pose))
-        p = predicted.covariance
-        s = p[:6, :6] + measurement.covariance
         gain = torch.linalg.solve(s, p[:6, :]).T  # P H^T S^-1, S symmetric
         correction = gain @ y
         i_kh = torch.eye(12, dtype=torch.float64)
