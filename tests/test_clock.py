@@ -10,8 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import tyro
 
 from nerfinv_plugin.bench.perf import LatencyRun, latency_rows
+from nerfinv_plugin.cli.bench import Commands
 from nerfinv_plugin.cli.invert import _frame_line, _summary_lines
 from nerfinv_plugin.data.sequences import read_sequence
 from nerfinv_plugin.geometry.se3 import rotation_about
@@ -179,6 +181,17 @@ def test_latency_benchmark_rows_are_the_medians_over_the_runs_at_each_speed():
     assert fast.mean_latency_s == 3.0 and fast.frames_skipped == 1.0  # medians of 2, 4, 3 and of 0, 1, 1
     assert fast.time_to_first_lock_s == 13.0 and fast.locked_runs == 2  # over the runs that locked
     assert slow.time_to_first_lock_s is None and slow.mean_latency_s == 20.0
+
+
+def test_the_latency_benchmark_runs_ns_invert_with_its_options():
+    bench = tyro.cli(Commands, args=["perf", "--load-config", "run/config.yml", "--sequence", "shirt/roe1", "--latency",
+                                     "--preset", "shirt-synthetic", "--candidates", "7", "--iterations", "9",
+                                     "--stop", "4", "--clock-speeds", "1", "0.1", "--out", "o"])
+    config = bench.latency_config()
+    assert bench.latency and bench.clock_speeds == (1.0, 0.1) and bench.latency_runs == 3
+    assert (config.starts.count, config.optimizer.iterations, config.stop, config.pixels) == (7, 9, 4, 256)
+    assert config.resolution == (240, 150) and config.preset == "shirt-synthetic"  # the rest from the preset
+    assert (str(config.output_dir), config.name, str(config.sequence)) == ("o", "latency", "shirt/roe1")
 
 
 @pytest.fixture(scope="module")
