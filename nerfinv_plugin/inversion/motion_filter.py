@@ -77,7 +77,7 @@ class MotionFilterConfig:
     prediction."""
     max_rejections: int = 3
     """After this many rejected frames in a row, the next rejected one restarts the filter from its
-    estimate (the motion changed, or the filter lost the target)."""
+    estimate (the motion changed, or the filter lost the target). At least 1."""
 
 
 @dataclass(frozen=True)

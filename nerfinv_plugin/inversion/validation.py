@@ -153,7 +153,7 @@ INVERT_RULES: dict[str, Rule] = {
     "monte-carlo.motion-filter.initial-rate-deg": number(above=0, at_most=180),
     "monte-carlo.motion-filter.initial-speed-m": number(above=0),
     "monte-carlo.motion-filter.gate-probability": number(above=0, below=1),  # 1: an infinite gate
-    "monte-carlo.motion-filter.max-rejections": whole(0),  # 0: a rejected estimate restarts the filter at once
+    "monte-carlo.motion-filter.max-rejections": whole(1),  # 0 would restart on every outlier: no gate at all
 }
 """The rule of every numeric option of ``ns-invert`` (:class:`InvertConfig` and the configs nested in it)."""
 
