@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from nerfinv_plugin.geometry.se3 import exp_se3
+from nerfinv_plugin.inversion.appearance import GainBias
 from nerfinv_plugin.inversion.losses import LossName, per_ray_loss
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.silhouette import BandPixels, Silhouette, silhouette_per_ray
@@ -52,6 +53,10 @@ class OptimizerConfig:
     """Band pixels drawn per iteration for the silhouette loss, besides the photometric pixels."""
     silhouette_band_px: int = 3
     """Half-width of the band about the observed outline the silhouette pixels come from, in pixels."""
+    appearance: Literal["as-observed", "gain-bias"] = "as-observed"
+    """as-observed: compare the observed colours as they are; gain-bias: map them to the model's scale with a
+    per-channel gain and bias fitted once per frame at the best starting candidate (another camera, exposure
+    or light than the training images': :mod:`nerfinv_plugin.inversion.appearance`)."""
     screw_origin: Literal["target", "world"] = "target"
     """Point the screw motions turn about: the target centre, or the model frame's origin (thesis)."""
     patience: int | None = None
@@ -166,9 +171,11 @@ class PreparedFrame:
     def from_image(cls, loaded: LoadedModel, image: np.ndarray | Tensor, intrinsics: Intrinsics,
                    sampler: PixelSampler, eval_pixels: Tensor, centre: Tensor,
                    error_fn: Callable[[Tensor], Tensor] | None = None,
-                   silhouette: Silhouette | None = None) -> "PreparedFrame":
-        """From the observed ``image`` [H, W, 3] ``uint8`` RGB."""
+                   silhouette: Silhouette | None = None, appearance: GainBias | None = None) -> "PreparedFrame":
+        """From the observed ``image`` [H, W, 3] ``uint8`` RGB, mapped to the model's scale by ``appearance``."""
         observed = torch.as_tensor(image, dtype=torch.float32, device=loaded.device) / 255.0
+        if appearance is not None:
+            observed = appearance.to_model(observed)
         return cls(observed, intrinsics, sampler, torch.as_tensor(eval_pixels).to(loaded.device),
                    centre.to(loaded.device, torch.float32), error_fn, silhouette)
 

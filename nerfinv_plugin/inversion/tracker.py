@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from nerfinv_plugin.geometry.se3 import exp_se3, log_se3, perturb_about
+from nerfinv_plugin.inversion.appearance import GainBias
 from nerfinv_plugin.inversion.motion_filter import MotionFilter, MotionFilterConfig, MotionState, PoseMeasurement
 from nerfinv_plugin.inversion.optimizer import (
     IterationRecord,
@@ -29,7 +30,7 @@ from nerfinv_plugin.inversion.optimizer import (
 from nerfinv_plugin.inversion.sampling import PixelSampler, Strategy
 from nerfinv_plugin.inversion.silhouette import Silhouette
 from nerfinv_plugin.model.loaded import LoadedModel
-from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings
+from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, render
 
 
 @dataclass
@@ -132,6 +133,8 @@ class TrackerState:
     motion_before: MotionState | None = None
     """``motion filter``: the filter's prediction for ``last_frame``, before its estimate: another step on
     that frame measures it again from here, so a frame counts once however many steps it gets."""
+    appearance: GainBias | None = None
+    """``appearance gain-bias``: the mapping fitted on ``last_frame``, which its further steps reuse."""
 
     def state_dict(self) -> dict:
         return {"step": self.step, "candidates": self.candidates, "rng": self.rng.bit_generator.state,
@@ -139,7 +142,8 @@ class TrackerState:
                 "last_estimate": self.last_estimate, "last_loss": self.last_loss,
                 "previous_estimate": self.previous_estimate, "eval_pixels": self.eval_pixels,
                 "carried": self.carried, "motion": None if self.motion is None else self.motion.to_dict(),
-                "motion_before": None if self.motion_before is None else self.motion_before.to_dict()}
+                "motion_before": None if self.motion_before is None else self.motion_before.to_dict(),
+                "appearance": None if self.appearance is None else self.appearance.to_dict()}
 
     @classmethod
     def from_state_dict(cls, state: dict) -> "TrackerState":
@@ -151,7 +155,8 @@ class TrackerState:
         return cls(state["step"], state["candidates"], rng, generator, state["last_frame"], state["last_estimate"],
                    state["last_loss"], state["previous_estimate"], state["eval_pixels"], state.get("carried", 0),
                    None if motion is None else MotionState.from_dict(motion),
-                   None if before is None else MotionState.from_dict(before))
+                   None if before is None else MotionState.from_dict(before),
+                   None if state.get("appearance") is None else GainBias.from_dict(state["appearance"]))
 
 
 @dataclass
@@ -201,8 +206,12 @@ class Tracker:
         if optimizer.silhouette_weight > 0 and frame.mask is not None:
             silhouette = Silhouette.from_mask(frame.mask, optimizer.silhouette_band_px, optimizer.silhouette_pixels,
                                               optimizer.silhouette_weight, self.loaded.device)
+        appearance = None
+        if optimizer.appearance == "gain-bias":
+            appearance = state.appearance if same_frame else self._fit_appearance(state.candidates[0], frame,
+                                                                                 eval_pixels)
         prepared = PreparedFrame.from_image(self.loaded, frame.image, frame.intrinsics, sampler, eval_pixels,
-                                            self.centre, error_fn, silhouette)
+                                            self.centre, error_fn, silhouette, appearance)
         result = optimize_candidates(self.loaded, state.candidates, prepared, optimizer, state.rng, on_iteration,
                                      min_candidates=keep_count(mc, state.step, state.candidates.shape[0]),
                                      settings=self.render)
@@ -231,7 +240,15 @@ class Tracker:
         state.carried = state.candidates.shape[0]
         state.last_frame, state.last_estimate, state.last_loss = frame_index, best, best_loss
         state.eval_pixels = eval_pixels
+        state.appearance = appearance
         return record
+
+    def _fit_appearance(self, c2w: Tensor, frame: Frame, pixels: Tensor) -> GainBias:
+        """The frame's gain and bias, fitted on ``pixels`` [P, 2] with the model rendered at ``c2w`` [4, 4]."""
+        with torch.no_grad():
+            rendered = render(self.loaded, c2w[None], frame.intrinsics, pixels, self.render).rgb[0]
+        observed = torch.as_tensor(frame.image[pixels[:, 0].numpy(), pixels[:, 1].numpy()], dtype=torch.float32)
+        return GainBias.fit(rendered, observed / 255.0)
 
     def _motion_filter(self) -> tuple[MotionFilter, Tensor]:
         """The filter in model units, and the transform [4, 4] float64 from the model frame to the target's."""
