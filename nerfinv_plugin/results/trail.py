@@ -7,9 +7,9 @@ Two files, beside the results:
 - ``trail.jsonl`` (appended, one line per Monte Carlo step): the candidates every few iterations, their
   final poses and losses, and which of them the step kept. A pose is 7 numbers (scalar-first quaternion,
   then position; model frame, OpenGL camera axes) of about 9 characters each, so a step of 30 candidates
-  with 12 snapshots is about 25 kB. Each line goes out in one ``write`` and is flushed; a reader skips a last line that has no newline
-  yet, so a run can be replayed while it writes. A resumed run repeats the step it lost; the last line
-  of a step wins.
+  with 12 snapshots is about 25 kB. Each line goes out in one ``write`` and is flushed; a reader skips a
+  last line that has no newline yet, so a run can be replayed while it writes. A resumed run repeats the
+  step it lost; the last line of a step wins.
 """
 
 import json
