@@ -47,6 +47,7 @@ TIMES = ("wall_time_s", "time_per_frame_s", "time_to_5deg_s", "run")
 def local_ray():
     """One local Ray with 2 CPUs for the module (starting one costs seconds); the runner uses it as found."""
     os.environ.setdefault("RAY_raylet_start_wait_time_s", "180")  # as the runner does: the machine is busy
+    os.environ.setdefault("RAY_worker_niceness", "0")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()

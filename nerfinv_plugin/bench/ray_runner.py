@@ -230,6 +230,9 @@ class RayRunner:
         if started:
             # Ray gives a new node 30 s to register; a busy machine (a shared 2-core one) can need more.
             os.environ.setdefault("RAY_raylet_start_wait_time_s", "180")
+            # Ray runs its workers at nice 15; the cells are this run's work, so they run at the priority the
+            # local runner's would (under nice 15 they got 2% of a core beside other work, docs/bench.md).
+            os.environ.setdefault("RAY_worker_niceness", "0")
             try:
                 ray.init(address=self.address, include_dashboard=False, log_to_driver=False)
             except (ConnectionError, ValueError, RuntimeError) as err:
