@@ -14,18 +14,16 @@ from nerfinv_plugin.data.sequences import SequenceError
 from nerfinv_plugin.inversion.optimizer import IterationRecord
 from nerfinv_plugin.inversion.session import Events, Inversion, InversionError
 from nerfinv_plugin.inversion.settings import InvertConfig, SettingsError, defaults_with_preset
-from nerfinv_plugin.inversion.validation import check, validate
+from nerfinv_plugin.inversion.validation import validate
 from nerfinv_plugin.model.loaded import ModelLoadError
 from nerfinv_plugin.report.build import write_report
 from nerfinv_plugin.results.records import FrameResult, RunSummary, StepRow
 from nerfinv_plugin.results.summary import LOCK_DEG
-from nerfinv_plugin.viewer.live import PORT, LiveViewer, start_server, viewer_url
+from nerfinv_plugin.viewer.live import LiveViewer, start_server, viewer_url
 from nerfinv_plugin.viewer.record import TrailRecorder, merged
 
 BAD_INPUT = (ModelLoadError, SequenceError, SettingsError, InversionError, FloatingPointError)
 """Errors that mean the input or the settings are wrong: one line and exit code 2, no traceback."""
-VIEWER_RULES = {"viewer-port": PORT}
-"""What the viewer's numeric options accept (the others are :data:`INVERT_RULES`)."""
 
 
 def _frame_line(row: FrameResult) -> str:
@@ -128,28 +126,15 @@ def invert(config: InvertConfig, console: Console, viewer: LiveViewer | None = N
 class Invert(InvertConfig):
     __doc__ = InvertConfig.__doc__
 
-    viewer: bool = False
-    """Watch the inversion in nerfstudio's viewer (viser) while it runs: training cameras, the observed frame,
-    the candidates coloured by loss, the kept ones, the trajectory and the model at the best candidate. The
-    URL is printed at start; the run goes on whether a browser connects or not. ns-invert-view RUN_DIR
-    replays the run afterwards."""
-    viewer_port: int | None = None
-    """Port of the viewer. Default: 7007, or a free port when it is taken, as ns-train does."""
-    viewer_render: bool = True
-    """Render the model at the best candidate after every step, beside the observed image (a small image:
-    a few hundredths of a second a step on the toy model)."""
-
     def main(self) -> None:
         validate(self)  # before anything is loaded or written
-        check(self, VIEWER_RULES)
-        settings = InvertConfig(**{f.name: getattr(self, f.name) for f in fields(InvertConfig)})
         if not self.viewer:
-            invert(settings, Console())
+            invert(self, Console())
             return
         console, server = Console(), start_server(self.viewer_port)
         console.print(viewer_url(server))
         try:
-            invert(settings, console, LiveViewer(server, self.viewer_render))
+            invert(self, console, LiveViewer(server, self.viewer_render))
         finally:
             server.stop()
 

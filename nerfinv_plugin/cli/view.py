@@ -10,10 +10,10 @@ from rich.console import Console
 from rich.markup import escape
 
 from nerfinv_plugin.cli import run
-from nerfinv_plugin.inversion.validation import SettingsError, check, number
+from nerfinv_plugin.inversion.validation import PORT, SettingsError, check, number
 from nerfinv_plugin.model.loaded import ModelLoadError
 from nerfinv_plugin.model.loading import Device
-from nerfinv_plugin.viewer.live import PORT, start_server, viewer_url
+from nerfinv_plugin.viewer.live import start_server, viewer_url
 from nerfinv_plugin.viewer.replay import Replay, ReplayError
 
 RULES = {"port": PORT, "interval-s": number(at_least=0)}

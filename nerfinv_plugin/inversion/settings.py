@@ -167,6 +167,16 @@ class InvertConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
     monte_carlo: MonteCarloConfig = field(default_factory=MonteCarloConfig)
+    viewer: bool = False
+    """Watch the run in nerfstudio's viewer (viser) while it goes: training cameras, the observed frame, the
+    candidates coloured by loss, the kept ones, the trajectory and the model at the best candidate
+    (docs/viewer.md). The URL is printed at start; the run goes on whether a browser connects or not. The
+    viewer options are a front end's: a resumed run takes them from its own command line."""
+    viewer_port: int | None = None
+    """Port of the viewer. Default: 7007, or a free port when it is taken, as ns-train does."""
+    viewer_render: bool = True
+    """With --viewer: render the model at the best candidate after every step, beside the observed image (a
+    160-pixel-wide image: 0.03 s a step on the toy model)."""
 
 
 def to_dict(config: Any) -> dict:

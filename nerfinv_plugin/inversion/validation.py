@@ -84,6 +84,7 @@ _FOUR_NUMBERS = several(number(), 4)
 QUATERNION = Rule("4 finite numbers of non-zero length (a quaternion)", "quaternions",
                   lambda v: _FOUR_NUMBERS.test(v) and any(x != 0 for x in v))
 """A scalar-first quaternion of any length but 0 (it is normalized where it is used)."""
+PORT = Rule("a whole number from 1 to 65535 (a TCP port)", "TCP ports", lambda v: _is_int(v) and 1 <= v <= 65535)
 
 
 def under(prefix: str, rules: Mapping[str, Rule]) -> dict[str, Rule]:
@@ -154,6 +155,7 @@ INVERT_RULES: dict[str, Rule] = {
     "monte-carlo.motion-filter.initial-speed-m": number(above=0),
     "monte-carlo.motion-filter.gate-probability": number(above=0, below=1),  # 1: an infinite gate
     "monte-carlo.motion-filter.max-rejections": whole(1),  # 0 would restart on every outlier: no gate at all
+    "viewer-port": PORT,
 }
 """The rule of every numeric option of ``ns-invert`` (:class:`InvertConfig` and the configs nested in it)."""
 

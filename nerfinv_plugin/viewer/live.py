@@ -16,7 +16,6 @@ from nerfstudio.viewer_legacy.server.viewer_utils import get_free_port
 from nerfinv_plugin.inversion.optimizer import IterationRecord
 from nerfinv_plugin.inversion.session import Events
 from nerfinv_plugin.inversion.tracker import Frame, StepRecord
-from nerfinv_plugin.inversion.validation import Rule
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import RenderSettings, render_image
 from nerfinv_plugin.results.records import FrameResult
@@ -24,9 +23,6 @@ from nerfinv_plugin.results.trail import EVERY
 from nerfinv_plugin.viewer.record import kept_indices, scene_record
 from nerfinv_plugin.viewer.scene import IMAGE_WIDTH, InversionScene
 
-PORT = Rule("a whole number from 1 to 65535 (a TCP port)", "TCP ports",
-            lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 65535)
-"""What ``--viewer-port`` and ``ns-invert-view --port`` accept (``inversion/validation.py``)."""
 DEFAULT_PORT = 7007
 """nerfstudio's ``ViewerConfig.websocket_port_default``."""
 HOST = "0.0.0.0"
