@@ -16,6 +16,7 @@ from nerfinv_plugin.inversion.tracker import MonteCarloConfig
 from nerfinv_plugin.report.build import REPORT_HTML
 from nerfinv_plugin.synth.datasets import speedplus_like_camera, write_shirt_trajectories
 from nerfinv_plugin.synth.trajectories import TrajectorySpec
+from nerfinv_plugin.viewer.live import LiveViewer, start_server
 
 FIGURES = {"error_vs_time.png", "loss_error_per_iteration.png", "error_per_frame.png", "overlays.png",
            "filmstrip.png"}
@@ -27,7 +28,8 @@ TABLES = "return [...document.querySelectorAll('table')].map(t => [t.rows.length
 
 @pytest.fixture(scope="module")
 def report(toy_run, tmp_path_factory) -> Path:
-    """report.html of a 2-frame inversion of the toy model, written by ns-invert's own code."""
+    """report.html of a 2-frame inversion of the toy model, written by ns-invert's own code; the run has a
+    live viewer that no browser ever connects to, and finishes all the same."""
     out = tmp_path_factory.mktemp("report-browser")
     write_shirt_trajectories(out, "toy", [TrajectorySpec(kind="roe1", num_frames=2, range_m=5.0)],
                              speedplus_like_camera(80, 50), False, seed=0, spp=16, step=lambda: None)
@@ -36,7 +38,12 @@ def report(toy_run, tmp_path_factory) -> Path:
         device="cpu", target=(0.0, 0.0, 0.15), pixels=64, eval_pixels=256,
         starts=StartConfig(source="truth-offset", count=4, min_deg=10.0, max_deg=15.0, shift_m=0.1),
         optimizer=OptimizerConfig(iterations=8), monte_carlo=MonteCarloConfig(keep=(2, 1), spawn=1))
-    invert(config, Console(file=io.StringIO()))
+    server = start_server(None)
+    try:
+        summary = invert(config, Console(file=io.StringIO()), LiveViewer(server))
+        assert summary.complete and not server.get_clients()
+    finally:
+        server.stop()
     return out / "e" / "nerfinv" / "t" / REPORT_HTML
 
 
