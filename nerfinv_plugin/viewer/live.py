@@ -70,7 +70,7 @@ class LiveViewer:
         if self.scene is not None and k != self.frame:
             self.frame = k
             frame = self.frames[k]
-            self.scene.observed(k, frame.image, None if frame.c2w_true is None else frame.c2w_true.double().numpy())
+            self.scene.observed(frame.image, None if frame.c2w_true is None else frame.c2w_true.double().numpy())
             self.scene.show_images(frame.image, None)
 
     def iteration(self, i: int, record: IterationRecord) -> None:
@@ -92,7 +92,7 @@ class LiveViewer:
         self.scene.show_kept(final[kept_indices(record)])
         frame = self.frames[record.frame_index]
         if frame.c2w_true is None:
-            self.scene.observed(record.frame_index, frame.image, record.estimate.double().numpy())
+            self.scene.observed(frame.image, record.estimate.double().numpy())
         if self.render:
             self.scene.show_images(frame.image, self._render(record.estimate.double().numpy(), frame))
 

@@ -83,7 +83,7 @@ class Replay:
         image = None if self.images is None or step.frame >= len(self.images) else self.images[step.frame]
         truth = record.truths[step.frame] if step.frame < len(record.truths) else None
         if truth is not None:
-            scene.observed(step.frame, image, np.asarray(truth))
+            scene.observed(image, np.asarray(truth))
         for iteration, poses, losses in zip(step.iterations, step.poses, step.losses):
             scene.show_candidates(poses, losses)
             best = int(np.argmin(losses))
@@ -94,7 +94,7 @@ class Replay:
         scene.show_kept(step.final[step.kept])
         best = step.final[step.kept[0] if step.kept else int(np.argmin(step.final_losses))]
         if truth is None:
-            scene.observed(step.frame, image, best)
+            scene.observed(image, best)
         scene.show_images(image, None if self.model is None else self._render(best))
         for row in RunFolder(self.folder).rows():
             if row.index <= step.frame and row.index not in self.frames_drawn:

@@ -126,7 +126,7 @@ class InversionScene:
                                                     scale=scale * self.unit,
                                                     color=colour, image=image, wxyz=wxyz, position=position)
 
-    def observed(self, frame: int, image: np.ndarray | None, pose: np.ndarray | None) -> None:
+    def observed(self, image: np.ndarray | None, pose: np.ndarray | None) -> None:
         """The observed frame's camera, showing its image, at ``pose`` (its truth, or the estimate)."""
         if pose is not None and self.scene.observed is not None:
             self._frustum("/observed", self.scene.observed, pose, OBSERVED_COLOUR, 1.6 * CANDIDATE_SCALE,
