@@ -197,6 +197,25 @@ def test_an_interrupted_driver_keeps_finished_cells_and_continues(toy_run, tmp_p
     assert _steps(runs / "toy-region-s0")[0] == begun[0]
 
 
+def test_with_shared_storage_tasks_write_in_place_and_a_begun_cell_resumes(toy_run, tmp_path, local_ray):
+    grid = _grid(toy_run, seeds=(0,))
+    runs = tmp_path / "g" / "nerfinv"
+
+    def interrupt(cell) -> Events:
+        def step(row: StepRow) -> None:
+            if cell.label == "toy-random-s0":
+                raise KeyboardInterrupt
+        return Events(step=step)
+    with pytest.raises(KeyboardInterrupt):
+        Bench(grid, tmp_path, GridEvents(inversion=interrupt)).run()
+    begun = _steps(runs / "toy-random-s0")
+    assert len(begun) == 1
+    records = Bench(grid, tmp_path, runner=RayRunner(shared_storage=True)).run()
+    assert [(r["status"], r["frames"]) for r in records] == [("done", 2)] * 2
+    assert _steps(runs / "toy-random-s0")[0] == begun[0]  # went on from the step saved here
+    assert RunFolder(runs / "toy-region-s0").summary().run == str((runs / "toy-region-s0").absolute())
+
+
 def test_a_task_runs_from_what_it_is_sent(toy_run, tmp_path, local_ray):
     config, data = toy_run
     model, scene = tmp_path / "driver" / "model", tmp_path / "driver" / "scene"

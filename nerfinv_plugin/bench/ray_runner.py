@@ -175,8 +175,8 @@ def run_shared_cell(config: InvertConfig, run_dir: str, cwd: str) -> CellOutcome
     """A Ray task: run a cell on storage every node shares, from the driver's working directory."""
     _use_granted_cpus()
     before = os.getcwd()
-    os.chdir(cwd)
     try:
+        os.chdir(cwd)  # a node without the driver's directory fails the cell with that message
         run_inversion(config, Path(run_dir))
     except Exception as err:
         return CellOutcome({}, one_line(err))
