@@ -27,6 +27,7 @@ ACCEPTED = {
     "start": {0}, "stop": {0}, "seed": {0}, "target": {0, -1}, "lost-iou": {0}, "watch-count": {0}, "watch-deg": {0},
     "starts.min-deg": {0}, "starts.max-deg": {0}, "starts.shift-m": {0}, "starts.prior-q": {-1},
     "starts.prior-r": {0, -1}, "bank.subdivisions": {0}, "bank.silhouette-weight": {0}, "bank.nms-deg": {0},
+    "optimizer.silhouette-weight": {0},  # colour-weight 0 only with a silhouette weight: the cross-check below
     "optimizer.min-improvement": {0}, "monte-carlo.spawn": {0}, "monte-carlo.spawn-rot-deg": {0},
     "monte-carlo.spawn-trans-m": {0},
 }
@@ -90,6 +91,14 @@ def test_zero_and_minus_one_pass_where_they_mean_something(option, value):
     config = _replaced(InvertConfig(), option, value)
     validate(config)  # raises SettingsError if the rule refuses the value
     assert _value(config, option) == value  # and the value validated was really the option's
+
+
+def test_the_colour_weight_may_be_0_only_with_a_silhouette_weight():
+    base = InvertConfig()
+    alone = replace(base, optimizer=replace(base.optimizer, colour_weight=0.0, silhouette_weight=1.0))
+    validate(alone)
+    with pytest.raises(SettingsError, match="silhouette weight is 0"):
+        validate(replace(alone, optimizer=replace(alone.optimizer, silhouette_weight=0.0)))
 
 
 @pytest.mark.parametrize("option", [o for o, hint in numeric_options(InvertConfig).items() if _inner(hint) != hint])

@@ -226,3 +226,8 @@ def validate(config: "InvertConfig", where: str | None = None) -> None:
     """Check every numeric option of an ``ns-invert`` configuration against :data:`INVERT_RULES`; ``where``
     names the file it was read from, if any."""
     check(config, INVERT_RULES, where)
+    optimizer = config.optimizer
+    if optimizer.colour_weight == 0 and optimizer.silhouette_weight == 0:
+        option = f"{where}: optimizer.colour-weight" if where else "--optimizer.colour-weight"
+        raise SettingsError(f"{option} must be above 0 when the silhouette weight is 0 (the loss would be 0 and "
+                            "nothing would move): give --optimizer.silhouette-weight too")
