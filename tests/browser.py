@@ -1,43 +1,24 @@
-"""A real headless Chromium for the browser tests: Debian's ``chromium`` driven by ``chromium-driver``
-through Selenium, with WebGL drawn in software (SwiftShader), so a WebGL canvas really draws on a machine
-without a GPU. ``.ci/run`` installs both packages."""
+"""The browser tests' headless Chromium: the package's (:mod:`nerfinv_plugin.viewer.browser`), failing the
+test (not skipping it) when the browser is missing, since CI installs it (``.ci/run``)."""
 
-import io
-import shutil
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
+from typing import Any
 
-import numpy as np
 import pytest
-from PIL import Image
 
-CHROMIUM_FLAGS = ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--use-gl=angle",
-                  "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--window-size=1024,768")
-"""SwiftShader through ANGLE; Chromium 150 (Debian 12) draws WebGL with either the two --use flags or
---enable-unsafe-swiftshader alone, newer ones only with the latter, so both are given."""
+from nerfinv_plugin.viewer import browser
+from nerfinv_plugin.viewer.browser import BrowserError, element_pixels
+
+__all__ = ["chromium", "element_pixels"]
 
 
 @contextmanager
-def chromium() -> Iterator:
-    """A Selenium driver of headless Chromium; fails (not skips) when the browser is missing, since CI
-    installs it."""
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    binary, driver_path = shutil.which("chromium"), shutil.which("chromedriver")
-    if binary is None or driver_path is None:
-        pytest.fail("chromium and chromium-driver are needed: apt-get install -y chromium chromium-driver")
-    options = webdriver.ChromeOptions()
-    options.binary_location = binary
-    for flag in CHROMIUM_FLAGS:
-        options.add_argument(flag)
-    driver = webdriver.Chrome(options=options, service=Service(driver_path))
-    try:
+def chromium() -> Iterator[Any]:
+    """:func:`nerfinv_plugin.viewer.browser.chromium`, with a missing browser a test failure."""
+    with ExitStack() as stack:
+        try:
+            driver = stack.enter_context(browser.chromium())
+        except BrowserError as err:
+            pytest.fail(str(err))
         yield driver
-    finally:
-        driver.quit()
-
-
-def element_pixels(element) -> np.ndarray:
-    """[H, W, 3] uint8 screenshot of one element (not the page)."""
-    return np.asarray(Image.open(io.BytesIO(element.screenshot_as_png)).convert("RGB"))

@@ -1,4 +1,5 @@
-"""``ns-invert-bench perf|render|screw|bank``: the measuring functions on the tiny fixture model, at tiny
+"""``ns-invert-bench perf|render|screw|bank`` (``viewer``: tests/test_bench_viewer.py, ``lightbox``:
+tests/test_lightbox.py): the measuring functions on the tiny fixture model, at tiny
 sizes, checked for what would show if they measured the wrong thing (the two ways rendering different
 rays, the thesis' way running frozen, both screws turning about the same point, recall miscounted), and
 that no benchmark leaves the model rendering differently; plus the command's shape."""
@@ -42,10 +43,10 @@ from nerfinv_plugin.model.render import (
 from nerfinv_plugin.synth.scenes import SCENE_CENTRES
 
 TOY_TARGET = tuple(float(v) for v in SCENE_CENTRES["toy"])
-SUBCOMMANDS = ("grid", "perf", "render", "screw", "bank")
+SUBCOMMANDS = ("grid", "perf", "render", "screw", "bank", "viewer", "lightbox")
 
 
-def test_help_lists_the_five_subcommands_and_one_is_required(monkeypatch, capsys):
+def test_help_lists_the_seven_subcommands_and_one_is_required(monkeypatch, capsys):
     shown = subprocess.run(["ns-invert-bench", "--help"], capture_output=True, text=True, check=True).stdout
     assert "{" + ",".join(SUBCOMMANDS) + "}" in shown
     assert all(f"• {name} " in shown for name in SUBCOMMANDS)  # each with its line of description

@@ -3,7 +3,6 @@ files and labels in SHIRT's layout, and the object mask found on its frames."""
 
 import json
 import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -13,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from nerfinv_plugin.cli.lightbox_gap import RULES, LightboxGap
+from nerfinv_plugin.cli.bench import LIGHTBOX_RULES, LightboxBench
 from nerfinv_plugin.cli.synth import Synth, TrajectoryOptions
 from nerfinv_plugin.data.sequences import read_sequence
 from nerfinv_plugin.geometry.frames import look_at_c2w_opencv, object_to_camera_to_c2w
@@ -237,8 +236,8 @@ def test_find_object_survives_the_lab_camera(lab_renders) -> None:
 
 
 def test_gap_command_checks_its_options(tmp_path: Path) -> None:
-    assert uncovered(LightboxGap, RULES) == []
-    done = subprocess.run([sys.executable, "-m", "nerfinv_plugin.cli.lightbox_gap", "--out", str(tmp_path / "gap"),
-                           "--num-frames", "0"], capture_output=True, text=True)
+    assert uncovered(LightboxBench, LIGHTBOX_RULES) == []
+    done = subprocess.run(["ns-invert-bench", "lightbox", "--out", str(tmp_path / "gap"), "--num-frames", "0"],
+                          capture_output=True, text=True)
     assert done.returncode == 2 and "--num-frames must be" in done.stderr, done.stderr
     assert len(done.stderr.strip().splitlines()) == 1 and not (tmp_path / "gap").exists()

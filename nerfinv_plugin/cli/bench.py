@@ -1,11 +1,14 @@
 """``ns-invert-bench``: nerfinv's benchmarks, one subcommand each, as ``ns-render`` does it.
 
 ``grid`` runs experiment grids of ``ns-invert`` runs; ``perf``, ``render``, ``screw`` and ``bank`` measure one
-trained model and share its options (:class:`ModelBench`). The measuring lives in ``nerfinv_plugin.bench``;
-this module parses, calls and prints the tables (markdown, to paste into docs/benchmarks.md).
+trained model and share its options (:class:`ModelBench`); ``viewer`` times ``ns-invert`` with and without a
+watched viewer, and ``lightbox`` compares the lightbox-like domain with the synthetic one. The measuring lives
+in ``nerfinv_plugin.bench``; this module parses, calls and prints the tables (markdown, to paste into
+docs/benchmarks.md).
 """
 
 import dataclasses
+import json
 import os
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -33,6 +36,7 @@ from nerfinv_plugin.bench.grid import (
     read_grid,
     with_cases,
 )
+from nerfinv_plugin.bench.lightbox import by_trajectory, domain_gaps
 from nerfinv_plugin.bench.observed import read_observed
 from nerfinv_plugin.bench.perf import compare_loops, latency_rows, latency_runs, profile_ours, sweep
 from nerfinv_plugin.bench.ray_runner import RayRunner
@@ -42,14 +46,19 @@ from nerfinv_plugin.bench.sampling import Sampling
 from nerfinv_plugin.bench.scoring import SUCCESS_DEG, aggregate, under_key
 from nerfinv_plugin.bench.screw import screw_runs, summarize
 from nerfinv_plugin.bench.tables import TABLE_MD
+from nerfinv_plugin.bench.viewer_overhead import OverheadPair, viewer_overhead
 from nerfinv_plugin.cli import Interrupted, run
 from nerfinv_plugin.data.sequences import SequenceError
 from nerfinv_plugin.initialization.bank import BankConfig
 from nerfinv_plugin.inversion.session import Events, InversionError
 from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, SettingsError, preset_path, read_yaml, updated
-from nerfinv_plugin.inversion.validation import validate
+from nerfinv_plugin.inversion.validation import check, number, several, validate, whole
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.loading import Device, ModelLoadError, load_model
+from nerfinv_plugin.results.atomic import write_atomic
+from nerfinv_plugin.synth.scenes import SceneName
+from nerfinv_plugin.synth.trajectories import TrajectoryKind
+from nerfinv_plugin.viewer.browser import BrowserError
 
 MB = 1 << 20
 
@@ -482,6 +491,107 @@ class BankBench(ModelBench):
                           f"top-{self.hypotheses} {100 * topk:.1f}%[/bold]")
 
 
+VIEWER_RULES = {"target": several(number(), 3), "stop": whole(1), "repeats": whole(1), "iterations": whole(1)}
+"""What the numeric options of ``viewer`` accept (nerfinv_plugin/inversion/validation.py)."""
+
+
+@dataclass(kw_only=True)
+class ViewerBench:
+    """Time ns-invert without the viewer and with it (--no-viewer-render) while one headless Chromium watches.
+
+    The two runs alternate --repeats times so that a change in the machine's load falls on both; prints
+    each pair's inversion wall time and this process's CPU time (the viewer's own work) of both runs and the
+    browser's CPU time, then the medians and their ratios. The runs go to a temporary folder. Needs
+    selenium (pip install 'nerfinv[test]') and chromium with chromium-driver (apt-get)."""
+
+    load_config: Path
+    """config.yml of a trained run."""
+    sequence: str
+    """The observed sequence with ground truth (ns-invert's --sequence); the starts are turned off the truth."""
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Target centre in the dataset frame."""
+    stop: int = 4
+    """Frames inverted per run."""
+    repeats: int = 3
+    """Pairs of runs (without, with the viewer)."""
+    iterations: int = 30
+    """Iterations per Monte Carlo step."""
+
+    def main(self) -> None:
+        check(self, VIEWER_RULES)
+        console = Console(soft_wrap=True)  # table rows on one line, to paste
+        load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
+        console.print(f"ns-invert on {self.sequence} (frames 0:{self.stop}) with {self.load_config}, "
+                      f"{self.iterations} iterations, load average {load} before, {datetime.now():%Y-%m-%d %H:%M}")
+
+        def on_pair(pair: OverheadPair) -> None:
+            console.print(f"pair: without viewer {pair.wall_off_s:.2f} s (CPU {pair.cpu_off_s:.2f} s), viewer, one "
+                          f"browser {pair.wall_on_s:.2f} s (CPU {pair.cpu_on_s:.2f} s); the browser's CPU "
+                          f"{pair.browser_cpu_s:.2f} s")
+
+        try:
+            with console.status("runs without and with the viewer"):
+                measured = viewer_overhead(self.load_config, self.sequence, self.target, self.stop, self.iterations,
+                                           self.repeats, on_pair)
+        except KeyboardInterrupt:
+            raise Interrupted("interrupted; the pairs printed above are finished") from None
+        for name, wall in (("inversion wall time", True), ("process CPU time", False)):
+            off, on = measured.medians(wall)
+            console.print(f"{name}: median without viewer {off:.2f} s, with the viewer and one browser {on:.2f} s, "
+                          f"ratio {on / off:.3f}")
+
+
+LIGHTBOX_RULES = {"seed": whole(0), "spp": whole(1), "num-frames": whole(1), "width": whole(1), "height": whole(1)}
+"""What the numeric options of ``lightbox`` accept (nerfinv_plugin/inversion/validation.py)."""
+
+
+@dataclass(kw_only=True)
+class LightboxBench:
+    """Render SHIRT trajectories of a scene in the synthetic and the lightbox-like domain and compare them.
+
+    The default trajectories, undistorted, go into <out>/shirt as ns-invert-synth --trajectory.lightbox
+    writes them; prints per frame the PSNR of the lightbox image against the synthetic one and the IoU of
+    the object mask found on the lightbox image (find_object) with the object's alpha and with the mask
+    found on a clean render of the lab lighting, then each trajectory's medians. Writes the numbers to
+    <out>/lightbox-gap.json."""
+
+    out: Path
+    """Output folder."""
+    scene: SceneName = "tango"
+    """tango: the spacecraft; toy: the tabletop object."""
+    seed: int = 0
+    """The generator's seed (textures, attitudes, render and camera noise)."""
+    spp: int = 64
+    """Samples per pixel of every render."""
+    kinds: tuple[TrajectoryKind, ...] = ("roe1", "roe2")
+    """Trajectories to render."""
+    num_frames: int = 20
+    """Frames per trajectory."""
+    width: int = 240
+    """Image width in pixels."""
+    height: int = 150
+    """Image height in pixels."""
+
+    def main(self) -> None:
+        check(self, LIGHTBOX_RULES)
+        console = Console(soft_wrap=True)  # one line a frame, however narrow the terminal
+        with console.status(f"rendering {self.scene} in both domains"):
+            gaps = domain_gaps(self.out, self.scene, self.kinds, self.num_frames, self.width, self.height,
+                               self.seed, self.spp)
+        for gap in gaps:
+            console.print(f"{gap.trajectory}/{gap.filename}: PSNR {gap.psnr_db:.2f} dB; mask IoU with alpha "
+                          f"{gap.iou_alpha:.3f}, with the clean render's mask {gap.iou_clean:.3f} (clean render "
+                          f"with alpha {gap.clean_iou_alpha:.3f}, synthetic image with alpha "
+                          f"{gap.synthetic_iou_alpha:.3f})")
+        for t in by_trajectory(gaps):
+            console.print(f"{t.trajectory}: PSNR median {t.psnr_median_db:.2f} dB; IoU with alpha median "
+                          f"{t.iou_alpha_median:.3f} (min {t.iou_alpha_min:.3f}); with the clean render's mask "
+                          f"median {t.iou_clean_median:.3f} (min {t.iou_clean_min:.3f})")
+        write_atomic(self.out / "lightbox-gap.json",
+                     json.dumps({"settings": dataclasses.asdict(self), "frames": [dataclasses.asdict(g) for g in gaps]},
+                                indent=2, default=str))
+
+
 Commands = (
     Annotated[GridBench, tyro.conf.subcommand(name="grid", description="experiment grids of ns-invert runs: "
                                               "success counts, tables, plots")]
@@ -493,13 +603,17 @@ Commands = (
                                                  "the thesis' world origin, from the same starts")]
     | Annotated[BankBench, tyro.conf.subcommand(name="bank", description="the view bank: build and match time, "
                                                 "recall of its hypotheses")]
+    | Annotated[ViewerBench, tyro.conf.subcommand(name="viewer", description="ns-invert with and without the "
+                                                  "viewer and one headless browser watching: time, CPU")]
+    | Annotated[LightboxBench, tyro.conf.subcommand(name="lightbox", description="the lightbox-like domain "
+                                                    "against the synthetic one: PSNR and mask IoU per frame")]
 )
 """``ns-invert-bench SUBCOMMAND [OPTIONS]``: a subcommand is required (``--help`` lists them)."""
 
 
 def entrypoint() -> None:
     run(Commands, "ns-invert-bench", GridError, SettingsError, ModelLoadError, SequenceError, InversionError,
-        default=tyro.MISSING_NONPROP)  # no default: a subcommand is required
+        BrowserError, default=tyro.MISSING_NONPROP)  # no default: a subcommand is required
 
 
 if __name__ == "__main__":
