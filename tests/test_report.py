@@ -190,6 +190,7 @@ def test_overlays_and_filmstrip_of_a_real_inversion(toy_run, tmp_path):
     run = tmp_path / "e" / "nerfinv" / "t"
     text = write_report(run).read_text()
     assert "Not in this report" not in text
+    assert not (run / "report" / "latency_vs_time.png").exists()  # a Blender split has no timestamps
     for name in FIGURES + IMAGE_FIGURES:
         _png(run / "report" / name)
         assert f'src="report/{name}"' in text

@@ -184,14 +184,20 @@ def _plot_parts(out: Path, run: Run) -> list[Part]:
     no_truth = "the sequence has no ground truth for these frames, so there is no error to plot"
     no_steps = "no Monte Carlo step has finished yet"
     no_frames = "no frame has finished yet"
-    no_times = "the sequence has no timestamps (SHIRT's metadata.json, or ns-invert --frame-interval-s)"
-    latency = figures.latency_vs_time(run.rows, _frame_interval(run.rows), run.summary.time_to_first_lock_s)
-    return [
+    parts = [
         _part(out, ERROR_VS_TIME, figures.error_vs_time(run.rows, run.steps), no_truth if run.steps else no_steps),
-        _part(out, LATENCY, latency, no_times if run.rows else no_frames),
         _part(out, ITERATIONS, figures.loss_and_error_per_iteration(run.steps), no_steps),
         _part(out, PER_FRAME, figures.per_frame_errors(run.rows), no_truth if run.rows else no_frames),
     ]
+    # Latency is observation to estimate: a sequence without timestamps (a Blender split, an image folder
+    # without --frame-interval-s) has none, and the page leaves the figure out rather than calling it missing.
+    if not run.rows or any(r.observed_s is not None for r in run.rows):
+        latency = figures.latency_vs_time(run.rows, _frame_interval(run.rows), run.summary.time_to_first_lock_s)
+        no_times = "the sequence has no timestamps (SHIRT's metadata.json, or ns-invert --frame-interval-s)"
+        parts.insert(1, _part(out, LATENCY, latency, no_times if run.rows else no_frames))
+    else:
+        (out / LATENCY.name).unlink(missing_ok=True)
+    return parts
 
 
 def _frame_interval(rows: list[FrameResult]) -> float | None:
