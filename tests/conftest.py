@@ -103,3 +103,22 @@ def toy_rgb_run() -> tuple[Path, Path]:
     images without alpha through nerfstudio-data; the data folder holds the RGBA originals and their Blender
     splits, for scoring on the same held-out views as :func:`toy_run`."""
     return _cached_run("toy-rgb", (TOY_SCENE, TOY_RGB_TRAINING), _build_toy_rgb_run, "toy-rgb")
+
+
+@pytest.fixture(scope="session")
+def toy_held_out(toy_run):
+    """The toy model loaded on the CPU, the intrinsics and true pose (model frame) of its first held-out
+    view, read with the project's Blender reader, and the target centre (the dataset origin) in the model
+    frame: a camera to render the model from where the answer is known."""
+    import numpy as np
+    import torch
+
+    from nerfinv_plugin.data.sequences import read_sequence
+    from nerfinv_plugin.model.loading import load_model
+
+    config, data = toy_run
+    loaded = load_model(config, device="cpu")
+    sequence = read_sequence(f"{data}:test", 0, 1)
+    truth = torch.as_tensor(loaded.dataset_to_model(sequence.frames[0].c2w_true), dtype=torch.float32)
+    centre = torch.as_tensor(loaded.dataset_to_model(np.eye(4))[:3, 3], dtype=torch.float32)
+    return loaded, sequence.intrinsics, truth, centre

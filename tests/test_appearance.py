@@ -10,8 +10,7 @@ import torch
 from nerfinv_plugin.inversion.appearance import MAX_GAIN, GainBias
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.tracker import Frame, Tracker, TrackerState
-from nerfinv_plugin.model.loading import load_model
-from nerfinv_plugin.model.render import Intrinsics, render_image
+from nerfinv_plugin.model.render import render_image
 
 GAIN = torch.tensor([0.8, 0.76, 0.68])  # exposure 0.8 times a warm light, 1 : 0.95 : 0.85
 BIAS = torch.tensor([0.04, 0.03, 0.05])
@@ -35,18 +34,10 @@ def test_a_flat_render_fits_only_the_bias_and_a_wild_gain_is_clamped():
 
 
 @pytest.fixture(scope="module")
-def toy_frame(toy_run):
-    config, data = toy_run
-    loaded = load_model(config, device="cpu")
-    meta = json.loads((data / "transforms_test.json").read_text())
-    width, height = int(meta.get("w", 80)), int(meta.get("h", 50))
-    focal = 0.5 * width / np.tan(0.5 * meta["camera_angle_x"])
-    intrinsics = Intrinsics(focal, focal, width / 2, height / 2, width, height)
-    truth = torch.as_tensor(loaded.dataset_to_model(np.array(meta["frames"][0]["transform_matrix"])),
-                            dtype=torch.float32)
-    clean = render_image(loaded, truth.numpy(), intrinsics)
-    centre = torch.as_tensor(loaded.dataset_to_model(np.eye(4))[:3, 3], dtype=torch.float32)
-    return loaded, intrinsics, truth, clean, centre
+def toy_frame(toy_held_out):
+    """The toy model, a held-out camera, its true pose and the model's own clean image there."""
+    loaded, intrinsics, truth, centre = toy_held_out
+    return loaded, intrinsics, truth, render_image(loaded, truth.numpy(), intrinsics), centre
 
 
 def test_the_tracker_fits_the_frame_s_mapping_and_keeps_it_for_the_frame(toy_frame):

@@ -1,7 +1,6 @@
 """The silhouette term: the band about the outline, the loss against a hand-computed case, the combined loss
 against separate renders, and that the silhouette alone pulls a shifted candidate back onto the object."""
 
-import json
 
 import numpy as np
 import pytest
@@ -11,8 +10,7 @@ from nerfinv_plugin.initialization.initializer import silhouette_iou
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig, PreparedFrame, candidate_losses, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.silhouette import EVAL_BAND_PIXELS, Silhouette, outline_band, silhouette_per_ray
-from nerfinv_plugin.model.loading import load_model
-from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, render, render_image
+from nerfinv_plugin.model.render import AS_TRAINED, render, render_image
 
 
 def test_the_band_holds_the_pixels_next_to_the_outline_on_both_sides():
@@ -50,17 +48,11 @@ def test_the_ranking_band_pixels_are_fixed_by_the_mask_and_capped():
 
 
 @pytest.fixture(scope="module")
-def toy_view(toy_run):
+def toy_view(toy_held_out):
     """The toy model, a held-out camera of its data, the model's own image there and its mask
     (accumulation above one half) as the observed frame."""
-    config, data = toy_run
-    loaded = load_model(config, device="cpu")
-    meta = json.loads((data / "transforms_test.json").read_text())
-    width, height = int(meta.get("w", 80)), int(meta.get("h", 50))
-    focal = 0.5 * width / np.tan(0.5 * meta["camera_angle_x"])
-    intrinsics = Intrinsics(focal, focal, width / 2, height / 2, width, height)
-    truth = torch.as_tensor(loaded.dataset_to_model(np.array(meta["frames"][0]["transform_matrix"])),
-                            dtype=torch.float32)
+    loaded, intrinsics, truth, centre = toy_held_out
+    width, height = intrinsics.width, intrinsics.height
     rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
     pixels = torch.stack([rows.reshape(-1), cols.reshape(-1)], 1)
     with torch.no_grad():
@@ -68,7 +60,6 @@ def toy_view(toy_run):
     image = (render_image(loaded, truth.numpy(), intrinsics) * 255).round().astype(np.uint8)
     mask = accumulation.numpy() > 0.5
     assert 0.02 < mask.mean() < 0.8  # the object is in the view, and not all of it
-    centre = torch.as_tensor(loaded.dataset_to_model(np.eye(4))[:3, 3], dtype=torch.float32)
     return loaded, intrinsics, truth, image, mask, centre
 
 
