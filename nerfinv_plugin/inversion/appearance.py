@@ -41,11 +41,10 @@ class GainBias:
         """Least squares per channel from colours [P, 3] rendered by the model and observed at the same pixels."""
         rendered, observed = rendered.double().cpu(), observed.double().cpu()
         mean_r, mean_o = rendered.mean(0), observed.mean(0)
-        spread = rendered.std(0)
         covariance = ((rendered - mean_r) * (observed - mean_o)).mean(0)
         variance = ((rendered - mean_r) ** 2).mean(0)
         fitted = covariance / variance.clamp_min(1e-12)
-        gain = torch.where(spread > MIN_SPREAD, fitted, torch.ones(3, dtype=torch.float64))
+        gain = torch.where(variance.sqrt() > MIN_SPREAD, fitted, torch.ones(3, dtype=torch.float64))
         gain = gain.clamp(MIN_GAIN, MAX_GAIN)
         bias = mean_o - gain * mean_r
         return cls(gain.float(), bias.float())
