@@ -34,8 +34,21 @@ from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, 
 class OptimizerConfig:
     """Gradient descent on the candidates of one Monte Carlo step."""
 
+    method: Literal["adam", "gauss-newton"] = "adam"
+    """adam: gradient steps on fresh pixels every iteration (the thesis); gauss-newton: damped Gauss-Newton
+    (Levenberg-Marquardt) steps on the mean squared colour error of pixels in the object's box, coarse to
+    fine through levels of blur, each step kept only when it lowers the loss: it does not random-walk along
+    the weakly observable direction (:mod:`nerfinv_plugin.inversion.gauss_newton`; mse, no silhouette)."""
     iterations: int = 60
-    """Iterations per Monte Carlo step (the thesis used 60)."""
+    """Adam iterations per Monte Carlo step (the thesis used 60)."""
+    gauss_newton_blur_px: tuple[float, ...] = (4.0, 2.0, 0.0)
+    """Gauss-Newton: the levels of blur, coarse to fine (Gaussian sigma in pixels of the working resolution);
+    0 compares sharp pixels, one ray each."""
+    gauss_newton_rays_per_pixel: int = 8
+    """Gauss-Newton: rays jittered about each pixel of a blurred level, whose mean colour is compared."""
+    gauss_newton_iterations: int = 6
+    """Gauss-Newton: trial steps per level at most (each renders once, with three backward passes), after the
+    level's first render; a candidate whose steps keep failing stops earlier."""
     lr: float = 0.01
     """Adam learning rate at the start of each step (the thesis' 0.01)."""
     lr_decay: float = 0.8
@@ -261,25 +274,28 @@ class CandidateStep:
         if config.patience is not None and self._stalled >= config.patience:
             self.stopped = True
 
-    def _eval_band(self) -> BandPixels | None:
-        silhouette = self.frame.silhouette
-        return None if silhouette is None else silhouette.band(silhouette.eval_pixels)
-
     def result(self) -> StepResult:
         """The final poses ranked on the frame's evaluation pixels."""
-        final = self.poses().detach()
-        losses = torch.full((final.shape[0],), torch.inf, device=self.loaded.device)
-        kept = torch.nonzero(self.active).flatten()
-        pixels = self.frame.eval_pixels
-        losses[kept] = candidate_losses(self.loaded, final[kept], self.frame.intrinsics, pixels,
-                                        self.frame.colours(pixels), self.config.loss, backward=False,
-                                        settings=self.settings, band=self._eval_band(),
-                                        colour_weight=self.config.colour_weight)
-        self.alive &= ~self.active | torch.isfinite(losses)
-        losses = torch.where(self.active & self.alive, losses, torch.inf)
-        dropped = torch.nonzero(~self.alive).flatten().tolist()
-        pruned = torch.nonzero(self.alive & ~self.active).flatten().tolist()
-        return StepResult(final, losses, self.history, dropped, pruned)
+        return rank(self.loaded, self.poses().detach(), self.alive, self.active, self.frame, self.config,
+                    self.settings, self.history)
+
+
+def rank(loaded: LoadedModel, final: Tensor, alive: Tensor, active: Tensor, frame: PreparedFrame,
+         config: OptimizerConfig, settings: RenderSettings, history: list[IterationRecord]) -> StepResult:
+    """A step's result: the ``final`` poses [N, 4, 4] of the ``active`` candidates ranked on the frame's
+    evaluation pixels (the others' loss is ``inf``); a candidate whose loss there is not finite joins the
+    dropped ones (not ``alive``), the alive ones no longer active are the pruned ones. Updates ``alive``."""
+    losses = torch.full((final.shape[0],), torch.inf, device=loaded.device)
+    kept = torch.nonzero(active).flatten()
+    pixels, silhouette = frame.eval_pixels, frame.silhouette
+    band = None if silhouette is None else silhouette.band(silhouette.eval_pixels)
+    losses[kept] = candidate_losses(loaded, final[kept], frame.intrinsics, pixels, frame.colours(pixels), config.loss,
+                                    backward=False, settings=settings, band=band, colour_weight=config.colour_weight)
+    alive &= ~active | torch.isfinite(losses)
+    losses = torch.where(active & alive, losses, torch.inf)
+    dropped = torch.nonzero(~alive).flatten().tolist()
+    pruned = torch.nonzero(alive & ~active).flatten().tolist()
+    return StepResult(final, losses, history, dropped, pruned)
 
 
 def optimize_candidates(loaded: LoadedModel, start: Tensor, frame: PreparedFrame, config: OptimizerConfig,
@@ -288,15 +304,27 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, frame: PreparedFrame
     """Optimize candidates ``start`` [N, 4, 4] against the prepared ``frame`` for at most
     ``config.iterations`` iterations, rendering under ``settings``, drawing each iteration's pixels with
     ``rng``. ``on_iteration(i, record)`` sees each iteration's history record as it is made (progress
-    bars). Pruning never leaves fewer than ``min_candidates``."""
-    step = CandidateStep(loaded, start, frame, config, min_candidates, settings)
-    for iteration in range(config.iterations):
+    bars). Pruning never leaves fewer than ``min_candidates``. ``config.method`` picks Adam or Gauss-Newton."""
+    if config.method == "gauss-newton":
+        from nerfinv_plugin.inversion.gauss_newton import GaussNewtonStep  # it builds on this module's records
+
+        step = GaussNewtonStep(loaded, start, frame, config, min_candidates, settings)
+    else:
+        step = CandidateStep(loaded, start, frame, config, min_candidates, settings)
+    for iteration in range(iterations_per_step(config)):
         record = step.iterate(rng)
         if on_iteration is not None:
             on_iteration(iteration, record)
         if step.stopped:
             break
     return step.result()
+
+
+def iterations_per_step(config: OptimizerConfig) -> int:
+    """The most iterations (renders) one step of ``config.method`` runs."""
+    if config.method == "gauss-newton":
+        return len(config.gauss_newton_blur_px) * (config.gauss_newton_iterations + 1)
+    return config.iterations
 
 
 def _far_above_best(losses: Tensor, ratio: float, keep: int) -> Tensor:

@@ -32,7 +32,7 @@ from nerfinv_plugin.initialization.extent import object_radius
 from nerfinv_plugin.initialization.initializer import Initializer, silhouette_iou
 from nerfinv_plugin.inversion import starts
 from nerfinv_plugin.inversion.clock import Clock, fraction_between, interpolated_pose
-from nerfinv_plugin.inversion.optimizer import IterationRecord, StepResult
+from nerfinv_plugin.inversion.optimizer import IterationRecord, StepResult, iterations_per_step
 from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, read_config, write_config
 from nerfinv_plugin.inversion.tracker import Frame, StepRecord, Tracker, TrackerState
 from nerfinv_plugin.model.loaded import LoadedModel
@@ -217,7 +217,7 @@ class Inversion:
             clock.now_s = steps[-1].clock_end_s if steps[-1].clock_end_s is not None else elapsed / c.clock_speed
         visited = [s.index for i, s in enumerate(steps) if i == 0 or steps[i - 1].index != s.index]
         total = len(frames) * c.steps_per_frame  # realtime: at most
-        self.events.begin(total, len(steps), c.optimizer.iterations)
+        self.events.begin(total, len(steps), iterations_per_step(c.optimizer))
         for step_index, k, within, state in tracker.schedule(clock.visits(visited), start, c.steps_per_frame,
                                                               resumed, len(steps)):
             begun = clock.now_s

@@ -189,7 +189,9 @@ class Tracker:
         next step. Consecutive steps on the same frame are elitist: a step that finds nothing better keeps
         the previous estimate, so the best loss of a frame never increases."""
         mc = self.monte_carlo
-        sampler = PixelSampler(self.sampling, self.pixels).prepare(frame.image)
+        # Gauss-Newton keeps one draw for the whole step: from the object's box, where the residuals say something
+        region = frame.rank_region if self.optimizer.method == "gauss-newton" else None
+        sampler = PixelSampler(self.sampling, self.pixels).prepare(frame.image, region)
         same_frame = state.last_frame == frame_index
         if mc.mode == "trajectory" and mc.motion == "filter" and not same_frame:
             self._predict(state, frame_index)

@@ -130,6 +130,9 @@ INVERT_RULES: dict[str, Rule] = {
     "bank.nms-deg": number(at_least=0, at_most=180),
     "bank.batch-views": whole(1),
     "optimizer.iterations": whole(1),
+    "optimizer.gauss-newton-iterations": whole(1),
+    "optimizer.gauss-newton-blur-px": several(number(at_least=0)),
+    "optimizer.gauss-newton-rays-per-pixel": whole(1),
     "optimizer.lr": number(above=0),
     "optimizer.colour-weight": number(at_least=0),
     "optimizer.silhouette-weight": number(at_least=0),
@@ -231,3 +234,9 @@ def validate(config: "InvertConfig", where: str | None = None) -> None:
         option = f"{where}: optimizer.colour-weight" if where else "--optimizer.colour-weight"
         raise SettingsError(f"{option} must be above 0 when the silhouette weight is 0 (the loss would be 0 and "
                             "nothing would move): give --optimizer.silhouette-weight too")
+    if optimizer.method == "gauss-newton":
+        name = f"{where}: optimizer.method" if where else "--optimizer.method"
+        if optimizer.loss != "mse" or optimizer.silhouette_weight > 0 or optimizer.colour_weight != 1:
+            raise SettingsError(f"{name} gauss-newton fits the mean squared colour error alone: leave --optimizer.loss "
+                                "mse, --optimizer.silhouette-weight 0 and --optimizer.colour-weight 1, or use "
+                                "--optimizer.method adam")

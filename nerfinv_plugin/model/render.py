@@ -368,3 +368,66 @@ def check_renders(loaded: LoadedModel, settings: RenderSettings = AS_TRAINED) ->
                              f"{type(err).__name__}: {first}") from err
     # Twice the saved tensors: forward transients live alongside them for a moment.
     return int(max(1, min(MAX_CHUNK_RAYS, memory_budget_bytes(loaded.device) // (2 * per_ray))))
+
+
+class RayJacobians(NamedTuple):
+    """Colours of N x P rays and each ray's colour derivatives with respect to its own origin and direction:
+    what a Gauss-Newton step needs to build the Jacobian of the residuals with respect to any pose
+    parameterisation (a pose moves a ray's origin and direction, nothing else)."""
+
+    rgb: Tensor
+    """[N, P, 3] rendered colours (no graph)."""
+    d_origin: Tensor
+    """[N, P, 3, 3]: ``d_origin[n, p, c]`` is the gradient of colour channel ``c`` with respect to the origin."""
+    d_direction: Tensor
+    """[N, P, 3, 3]: the same with respect to the (unit) direction."""
+    origins: Tensor
+    """[N, P, 3] ray origins (model frame)."""
+    directions: Tensor
+    """[N, P, 3] unit ray directions."""
+
+
+def render_ray_jacobians(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
+                         settings: RenderSettings = AS_TRAINED) -> RayJacobians:
+    """Render ``pixels`` [P, 2] from every pose in ``c2w`` [N, 4, 4] with the per-ray Jacobians of the colours.
+    A ray's colour depends on its own origin and direction only, so one backward pass per colour channel over
+    all rays at once gives every ray's 3 x 6 Jacobian exactly (three backward passes, not one per residual).
+    Rays that miss ``settings.target_sphere`` are background: zero derivatives."""
+    if isinstance(loaded.model, SplatfactoModel):
+        raise ModelLoadError("splatfacto renders whole images, not rays: use --optimizer.method adam with it")
+    chunk_rays = settings.chunk_rays if settings.chunk_rays is not None else loaded.chunk_rays or check_renders(loaded)
+    n, p = c2w.shape[0], pixels.shape[0]
+    with torch.no_grad():
+        bundle = ray_bundle(loaded, c2w.detach().to(loaded.device), intrinsics, pixels)
+        hits = bound_to_target(settings, bundle)
+    origins, directions = bundle.origins.detach(), bundle.directions.detach()
+    background = background_colour(loaded)
+    rgb = torch.zeros(n * p, 3, device=loaded.device)
+    d_origin = torch.zeros(n * p, 3, 3, device=loaded.device)
+    d_direction = torch.zeros(n * p, 3, 3, device=loaded.device)
+    if hits is not None and background is not None:
+        rgb[~hits] = background
+        rendered = torch.nonzero(hits).flatten()
+    else:
+        rendered = torch.arange(n * p, device=loaded.device)
+    for start in range(0, len(rendered), chunk_rays):
+        rays = rendered[start:start + chunk_rays]
+        part = bundle[rays]
+        part.origins = origins[rays].clone().requires_grad_(True)
+        part.directions = directions[rays].clone().requires_grad_(True)
+        with _sampling(loaded, settings), torch.enable_grad():
+            colour = _pick(loaded.model(part), "rgb")
+            if colour is None:
+                raise RuntimeError(f"{type(loaded.model).__name__} returned no rgb output")
+            for c in range(3):
+                if not colour.requires_grad:  # nothing on these rays depends on the pose
+                    break
+                g_origin, g_direction = torch.autograd.grad(colour[:, c].sum(), (part.origins, part.directions),
+                                                            retain_graph=c < 2, allow_unused=True)
+                if g_origin is not None:
+                    d_origin[rays, c] = g_origin
+                if g_direction is not None:
+                    d_direction[rays, c] = g_direction
+        rgb[rays] = colour.detach()
+    return RayJacobians(rgb.reshape(n, p, 3), d_origin.reshape(n, p, 3, 3), d_direction.reshape(n, p, 3, 3),
+                        origins.reshape(n, p, 3), directions.reshape(n, p, 3))
