@@ -86,6 +86,8 @@ def test_the_loss_never_rises_within_a_level_and_the_steps_converge(toy_held_out
     assert len(result.history) <= iterations_per_step(one_level)
     assert (np.diff(losses, axis=0) <= 0).all()
     assert (losses[-1] < losses[0]).sum() >= 3  # steps were taken, not all refused
+    assert not np.array_equal(result.history[0].c2w, result.history[-1].c2w)  # each record keeps its own poses
+    assert np.array_equal(result.history[-1].c2w, result.c2w.numpy())
 
 
 def test_coarse_to_fine_brings_starts_8_degrees_off_in_and_does_not_leave_the_truth(toy_held_out, observed):

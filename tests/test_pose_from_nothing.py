@@ -69,6 +69,26 @@ def test_the_bare_command_tracks_the_fixture_from_nothing(toy_run, shirt, tmp_pa
     assert 0.72 < summary["target_radius_m"] < 1.1  # read off the model: the toy reaches 0.73 m from its centre
 
 
+def test_gauss_newton_tracks_the_fixture_from_nothing_and_twice_its_iterations_end_no_worse(toy_run, shirt, tmp_path):
+    """Issue 13's check against drift along the weak direction, on the Gauss-Newton method: twice the trial
+    steps per level end no more than 0.5 degrees worse in the median over three seeds. On this 80 x 50
+    fixture the method follows the target less closely than at 240 x 150 (docs/benchmarks.md): the bound
+    on the frames is 12 degrees, three frames' worth of the target's 4-degree turns."""
+    finals = {}
+    for trials in (6, 12):
+        for seed in (0, 1, 2):
+            optimizer = OptimizerConfig(method="gauss-newton", gauss_newton_iterations=trials)
+            config = _quick(toy_run, shirt / "roe1", tmp_path / f"{trials}-{seed}", stop=4, seed=seed,
+                            optimizer=optimizer)
+            rows = RunFolder(Path(Inversion.create(config).run().run)).rows()
+            errors = np.array([r.rotation_deg for r in rows])
+            assert (errors[2:] < 12.0).all(), (trials, seed, errors)
+            finals[trials, seed] = errors[-1]
+    default = np.median([finals[6, s] for s in (0, 1, 2)])
+    doubled = np.median([finals[12, s] for s in (0, 1, 2)])
+    assert doubled <= default + 0.5, finals
+
+
 def _quick(toy_run, sequence: Path, out: Path, **changes) -> InvertConfig:
     return InvertConfig(load_config=toy_run[0], sequence=str(sequence), output_dir=out, name="e", timestamp="t",
                         device="cpu", pixels=128, eval_pixels=512, bank=BankConfig(subdivisions=2),
