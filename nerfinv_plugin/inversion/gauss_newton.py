@@ -172,7 +172,8 @@ class GaussNewtonStep:
             self._trial()
         losses = torch.where(self.alive, self.cost, torch.inf)
         error = None if self.frame.error_fn is None else self.frame.error_fn(self.current).cpu().numpy()
-        record = IterationRecord(losses.cpu().numpy(), error, self.current.cpu().numpy().copy())  # poses move on in place
+        # a copy: the poses move on in place, and each record keeps those it was measured at
+        record = IterationRecord(losses.cpu().numpy(), error, self.current.cpu().numpy().copy())
         self.history.append(record)
         last_level_done = not self.levels and (self.trials >= self.config.gauss_newton_iterations
                                                or not bool(self.active.any()))

@@ -135,8 +135,9 @@ class InvertConfig:
     hypotheses that are more than --watch-deg from every candidate join them, so a tracker that took a wrong
     mode (the half-turn flip of a near-symmetric object) leaves it once the bank sees the right one; the
     loss decides. With --starts.source bank. 0: never."""
-    watch_deg: float = 30.0
-    """How far (attitude) a bank hypothesis must be from every candidate to join them."""
+    watch_deg: float = 15.0
+    """How far (attitude) a bank hypothesis must be from every candidate to join them. 15 also catches a
+    tracker that slid 15-30 degrees off (30 until 2026-12-02: docs/benchmarks.md, counts from nothing)."""
     steps_per_frame: int = 1
     """Monte Carlo steps spent on each frame before moving to the next (1: the thesis' trajectory method)."""
     clock: ClockMode = "frames"
