@@ -64,6 +64,7 @@ class BlurLevel:
 
     @classmethod
     def draw(cls, frame: PreparedFrame, sigma: float, rays_per_pixel: int, rng: np.random.Generator) -> "BlurLevel":
+        """A level of ``sigma`` px: fresh pixels from the frame's sampler and fresh jitter, both from ``rng``."""
         pixels = frame.sampler.sample(rng)
         image = frame.observed.cpu().numpy()
         if sigma > 0:
@@ -84,7 +85,8 @@ class BlurLevel:
 class GaussNewtonStep:
     """N candidates over one step, an iteration (one render with Jacobians) at a time; the same interface
     as :class:`~nerfinv_plugin.inversion.optimizer.CandidateStep`. Each level takes one iteration to
-    linearise at its start and ``config.gauss_newton_iterations`` trial steps after it."""
+    linearise at its start and ``config.gauss_newton_iterations`` trial steps after it. It prunes nothing
+    (a settled candidate keeps its place in the ranking), so ``min_candidates`` changes nothing here."""
 
     def __init__(self, loaded: LoadedModel, start: Tensor, frame: PreparedFrame, config: OptimizerConfig,
                  min_candidates: int = 1, settings: RenderSettings = AS_TRAINED):
