@@ -30,7 +30,14 @@ import torch
 from torch import Tensor
 
 from nerfinv_plugin.geometry.se3 import exp_se3
-from nerfinv_plugin.inversion.optimizer import IterationRecord, OptimizerConfig, PreparedFrame, StepResult, rank
+from nerfinv_plugin.inversion.optimizer import (
+    IterationRecord,
+    OptimizerConfig,
+    PreparedFrame,
+    StepResult,
+    centred,
+    rank,
+)
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import AS_TRAINED, RayJacobians, RenderSettings, render_ray_jacobians
 
@@ -94,10 +101,7 @@ class GaussNewtonStep:
         self.loaded, self.frame, self.config, self.settings = loaded, frame, config, settings
         self.current = start.to(device, torch.float32).clone()
         n = self.current.shape[0]
-        self.to_centre = torch.eye(4, device=device)
-        self.to_centre[:3, 3] = frame.centre
-        self.from_centre = torch.eye(4, device=device)
-        self.from_centre[:3, 3] = -frame.centre
+        self.to_centre, self.from_centre = centred(frame.centre)
         self.alive = torch.isfinite(self.current).flatten(1).all(1)
         self.active = self.alive.clone()
         self.cost = torch.full((n,), torch.inf, device=device)
@@ -117,14 +121,15 @@ class GaussNewtonStep:
 
     def _linearize(self, c2w: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Residuals [K, M], Jacobians [K, M, 6] and loss [K] (mean squared colour error) of the poses
-        ``c2w`` [K, 4, 4] on the current level."""
+        ``c2w`` [K, 4, 4] on the current level; the loss is infinite where the Jacobian is not finite."""
         level = self.level
         rays = render_ray_jacobians(self.loaded, c2w, self.frame.intrinsics, level.rays, self.settings)
         k, per_pixel = c2w.shape[0], level.per_pixel
         colours = rays.rgb.reshape(k, -1, per_pixel, 3).mean(2)
         jacobian = screw_jacobian(rays, self.frame.centre).reshape(k, -1, per_pixel, 3, 6).mean(2)
-        residuals = (colours - level.observed[None]).flatten(1)
-        return residuals, jacobian.flatten(1, 2), (residuals**2).mean(1)
+        residuals, jacobian = (colours - level.observed[None]).flatten(1), jacobian.flatten(1, 2)
+        loss = (residuals**2).mean(1)
+        return residuals, jacobian, torch.where(torch.isfinite(jacobian).flatten(1).all(1), loss, torch.inf)
 
     def _begin_level(self, rng: np.random.Generator) -> None:
         """Draw the next level's pixels and linearise every live candidate on them."""
@@ -141,7 +146,7 @@ class GaussNewtonStep:
         if len(which):
             residuals, jacobian, cost = self._linearize(self.current[which])
             self.residuals[which], self.jacobian[which], self.cost[which] = residuals, jacobian, cost
-            self.alive[which] &= torch.isfinite(cost) & torch.isfinite(jacobian).flatten(1).all(1)
+            self.alive[which] &= torch.isfinite(cost)
             self.active &= self.alive
 
     def _trial(self) -> None:
@@ -156,7 +161,7 @@ class GaussNewtonStep:
         delta = -torch.linalg.solve(damped, gradient)[..., 0]
         trial = self.to_centre @ exp_se3(delta) @ self.from_centre @ self.current[which]
         residuals, jacobian, cost = self._linearize(trial)
-        better = torch.isfinite(cost) & torch.isfinite(jacobian).flatten(1).all(1) & (cost < self.cost[which])
+        better = cost < self.cost[which]  # an infinite loss is never better
         kept = which[better]
         self.current[kept], self.cost[kept] = trial[better], cost[better]
         self.residuals[kept], self.jacobian[kept] = residuals[better], jacobian[better]

@@ -115,7 +115,8 @@ class StepResult:
     """Candidates stopped early because their loss was far above the best (``prune_every``)."""
 
 
-def _centred(centre: Tensor) -> tuple[Tensor, Tensor]:
+def centred(centre: Tensor) -> tuple[Tensor, Tensor]:
+    """The translations [4, 4] to and from ``centre`` [3]: a screw turns about it as ``C exp([S] theta) C^-1``."""
     to_centre = torch.eye(4, dtype=centre.dtype, device=centre.device)
     to_centre[:3, 3] = centre
     from_centre = torch.eye(4, dtype=centre.dtype, device=centre.device)
@@ -210,7 +211,7 @@ class CandidateStep:
         n = self.start.shape[0]
         self.theta = torch.zeros(n, 6, device=device, requires_grad=True)
         if config.screw_origin == "target":
-            self.to_centre, self.from_centre = _centred(frame.centre.to(device, torch.float32))
+            self.to_centre, self.from_centre = centred(frame.centre.to(device, torch.float32))
         else:
             self.to_centre, self.from_centre = torch.eye(4, device=device), torch.eye(4, device=device)
         self.optimizer = torch.optim.Adam([self.theta], lr=config.lr)
@@ -302,7 +303,7 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, frame: PreparedFrame
                         rng: np.random.Generator, on_iteration: Callable[[int, IterationRecord], None] | None = None,
                         min_candidates: int = 1, settings: RenderSettings = AS_TRAINED) -> StepResult:
     """Optimize candidates ``start`` [N, 4, 4] against the prepared ``frame`` for at most
-    ``config.iterations`` iterations, rendering under ``settings``, drawing each iteration's pixels with
+    ``iterations_per_step(config)`` iterations, rendering under ``settings``, drawing each iteration's pixels with
     ``rng``. ``on_iteration(i, record)`` sees each iteration's history record as it is made (progress
     bars). Pruning never leaves fewer than ``min_candidates``. ``config.method`` picks Adam or Gauss-Newton."""
     if config.method == "gauss-newton":

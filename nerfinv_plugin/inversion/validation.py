@@ -211,6 +211,12 @@ def _shown(value: Any) -> str:
     return str(value) if _is_int(value) or isinstance(value, float) else repr(value)
 
 
+def _option(name: str, where: str | None) -> str:
+    """An option as a message names it: typed on the command line (``--optimizer.lr``), or as a key of the
+    file ``where`` it was read from."""
+    return f"{where}: {name}" if where else f"--{name}"
+
+
 def check(config: Any, rules: Mapping[str, Rule], where: str | None = None) -> None:
     """Raise :class:`SettingsError` for the first numeric option of ``config`` that breaks its rule. The message
     names it as typed on the command line (``--optimizer.lr``), or as a key of the file ``where`` it was read
@@ -221,7 +227,7 @@ def check(config: Any, rules: Mapping[str, Rule], where: str | None = None) -> N
         rule = rules.get(name)
         if rule is None or (value is None and _without_none(hint)[1]) or rule.test(value):
             continue
-        option = f"{where}: {name}" if where else f"--{name}"
+        option = _option(name, where)
         raise SettingsError(f"{option} must be {rule.one}, not {_shown(value)}")
 
 
@@ -231,11 +237,11 @@ def validate(config: "InvertConfig", where: str | None = None) -> None:
     check(config, INVERT_RULES, where)
     optimizer = config.optimizer
     if optimizer.colour_weight == 0 and optimizer.silhouette_weight == 0:
-        option = f"{where}: optimizer.colour-weight" if where else "--optimizer.colour-weight"
+        option = _option("optimizer.colour-weight", where)
         raise SettingsError(f"{option} must be above 0 when the silhouette weight is 0 (the loss would be 0 and "
                             "nothing would move): give --optimizer.silhouette-weight too")
     if optimizer.method == "gauss-newton":
-        name = f"{where}: optimizer.method" if where else "--optimizer.method"
+        name = _option("optimizer.method", where)
         if optimizer.loss != "mse" or optimizer.silhouette_weight > 0 or optimizer.colour_weight != 1:
             raise SettingsError(f"{name} gauss-newton fits the mean squared colour error alone: leave --optimizer.loss "
                                 "mse, --optimizer.silhouette-weight 0 and --optimizer.colour-weight 1, or use "

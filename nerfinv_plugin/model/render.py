@@ -218,6 +218,11 @@ def background_colour(loaded: LoadedModel) -> Tensor | None:
     return None
 
 
+def _chunk_rays(loaded: LoadedModel, settings: RenderSettings) -> int:
+    """Rays per chunk: the settings', else the one measured when the model was loaded, else measured now."""
+    return settings.chunk_rays if settings.chunk_rays is not None else loaded.chunk_rays or check_renders(loaded)
+
+
 Rays = slice | Tensor
 """Which of the N * P flat rays a chunk holds: a slice, or indices when rays were skipped."""
 
@@ -228,7 +233,7 @@ def render_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixe
     Yields ``(rays, outputs for them)``, ``rays`` indexing the N * P flat rays; every ray is accounted for.
     With a target sphere set, the rays that miss it come last, as one chunk of background colour that
     does not depend on the pose."""
-    chunk_rays = settings.chunk_rays if settings.chunk_rays is not None else loaded.chunk_rays or check_renders(loaded)
+    chunk_rays = _chunk_rays(loaded, settings)
     if chunk_rays < 1:
         raise ValueError(f"chunk_rays must be at least 1, got {chunk_rays}")
     if isinstance(loaded.model, SplatfactoModel):
@@ -395,7 +400,7 @@ def render_ray_jacobians(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsic
     Rays that miss ``settings.target_sphere`` are background: zero derivatives."""
     if isinstance(loaded.model, SplatfactoModel):
         raise ModelLoadError("splatfacto renders whole images, not rays: use --optimizer.method adam with it")
-    chunk_rays = settings.chunk_rays if settings.chunk_rays is not None else loaded.chunk_rays or check_renders(loaded)
+    chunk_rays = _chunk_rays(loaded, settings)
     n, p = c2w.shape[0], pixels.shape[0]
     with torch.no_grad():
         bundle = ray_bundle(loaded, c2w.detach().to(loaded.device), intrinsics, pixels)
