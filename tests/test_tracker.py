@@ -250,3 +250,35 @@ def test_pruning_stops_far_candidates_and_patience_ends_a_step_early(toy_sequenc
     patient = OptimizerConfig(iterations=20, patience=2, min_improvement=0.9)
     short = optimize_candidates(loaded, near, prepared, patient, np.random.default_rng(0))
     assert len(short.history) == 3 and torch.isfinite(short.losses).all()
+
+
+@pytest.mark.parametrize("sample_region", ["object", "image"])
+def test_the_sample_region_decides_where_each_iterations_pixels_are_drawn(toy_sequence, monkeypatch, sample_region):
+    """With sample_region object every iteration draws its pixels in the frame's object region (as the
+    ranking pixels always do); with image, anywhere."""
+    loaded, frames, centre = toy_sequence
+    frame = dataclasses.replace(frames[0])
+    height, width = frame.image.shape[:2]
+    frame.object_region = np.zeros((height, width), bool)
+    frame.object_region[10:30, 20:50] = True
+    drawn: list[np.ndarray] = []
+    original = PixelSampler.sample
+
+    def spy(self, rng):
+        pixels = original(self, rng)
+        drawn.append(pixels)
+        return pixels
+
+    monkeypatch.setattr(PixelSampler, "sample", spy)
+    start = _starts(frame.c2w_true, centre, 2, loaded.dataparser_scale, seed=8)
+    tracker = Tracker(loaded, centre, OptimizerConfig(iterations=4), MonteCarloConfig(keep=(1,), spawn=1),
+                      sampling="random", pixels=64, eval_pixels=128, sample_region=sample_region)
+    tracker.run([frame], start)
+    inside = [frame.object_region[p[:, 0], p[:, 1]] for p in drawn]
+    ranking, iterations = inside[0], inside[1:]  # the ranking pixels are drawn first, then one set an iteration
+    assert len(iterations) == 4 and ranking.all() and len(ranking) == 128
+    assert all(len(i) == 64 for i in iterations)
+    if sample_region == "object":
+        assert all(i.all() for i in iterations)
+    else:  # the region is 600 of 4,000 pixels: uniform draws over the image fall outside it
+        assert not any(i.all() for i in iterations)

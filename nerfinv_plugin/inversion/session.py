@@ -188,8 +188,7 @@ class Inversion:
         setup = time.perf_counter()  # from here on, everything is compute the clock is charged for
         for frame, detection in zip(frames, detections):
             frame.mask = None if detection is None else detection.mask
-            if c.rank_region == "object":
-                frame.rank_region = None if detection is None else detection.around(RANK_MARGIN)
+            frame.object_region = None if detection is None else detection.around(RANK_MARGIN)
         centre = torch.as_tensor(loaded.point_to_model(np.asarray(c.target)), dtype=torch.float32)
         settings, radius = bound_rays(loaded, centre, c.render)
         if radius is not None:
@@ -200,7 +199,7 @@ class Inversion:
         start = self._starts(loaded, sequence, centre, detections, initializer)
         setup_s = time.perf_counter() - setup
         tracker = Tracker(loaded, centre, c.optimizer, c.monte_carlo, c.sampling, c.pixels, c.eval_pixels,
-                          c.seed, rotation_error_deg, settings)
+                          c.seed, rotation_error_deg, settings, c.sample_region, c.rank_region)
         self.folder.path.mkdir(parents=True, exist_ok=True)
         if not (self.folder.path / CONFIG).is_file():
             write_config(self.folder.path / CONFIG, dataclasses.replace(c, resume=None))

@@ -15,7 +15,7 @@ from nerfinv_plugin.initialization.bank import BankConfig
 from nerfinv_plugin.inversion.clock import ClockMode
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.sampling import Strategy
-from nerfinv_plugin.inversion.tracker import MonteCarloConfig
+from nerfinv_plugin.inversion.tracker import MonteCarloConfig, Region
 from nerfinv_plugin.inversion.validation import SettingsError, validate
 from nerfinv_plugin.model.loading import Device
 
@@ -154,14 +154,18 @@ class InvertConfig:
     frame_interval_s: float | None = None
     """Seconds between consecutive frames of the sequence. Unset: SHIRT's metadata.json (pSim.cam_step, 5 s);
     other layouts then have no timestamps (and no latency)."""
-    sampling: Strategy = "interest_region"
+    sampling: Strategy = "random"
     """Which pixels are rendered: random, interest_point (SIFT keypoints) or interest_region (5x5 around
-    them, the thesis' best)."""
+    them, the thesis' best; random about the object by default since 2026-12-02: docs/benchmarks.md)."""
+    sample_region: Region = "object"
+    """Where each iteration's pixels are drawn: object: in the box of the object found in the frame, widened
+    by a quarter of its size on every side (as the ranking pixels; the whole image where no object is
+    found); image: anywhere (the thesis). Gauss-Newton always draws about the object."""
     pixels: int = 256
     """Pixels rendered per candidate and iteration."""
     eval_pixels: int = 1024
     """Fixed random pixels per frame on which candidates are ranked."""
-    rank_region: Literal["object", "image"] = "object"
+    rank_region: Region = "object"
     """Where those pixels are drawn: object: in the box of the object found in the frame, widened by a
     quarter of its size on every side (most pixels then tell candidates apart); image: anywhere (the
     thesis; on a small object most pixels are background)."""

@@ -32,6 +32,9 @@ from nerfinv_plugin.inversion.silhouette import Silhouette
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, render
 
+Region = Literal["object", "image"]
+"""Where pixels are drawn: about the object found in the frame, or anywhere in the image."""
+
 
 @dataclass
 class MonteCarloConfig:
@@ -84,9 +87,10 @@ class Frame:
     name: str = ""
     c2w_true: Tensor | None = None
     """[4, 4] true camera pose in the model frame, when known: for error histories."""
-    rank_region: np.ndarray | None = None
-    """[H, W] bool: where the ranking pixels are drawn (about the object, so that most of them tell
-    candidates apart). None: anywhere in the image."""
+    object_region: np.ndarray | None = None
+    """[H, W] bool: the box of the object found in the frame, widened: where the ranking pixels (and, with
+    ``sample_region object``, each iteration's pixels) are drawn, so that most of them tell candidates
+    apart. None: the object was not found; pixels come from the whole image."""
     mask: np.ndarray | None = None
     """[H, W] bool: the object as observed, for the silhouette loss. None: no silhouette term here."""
 
@@ -176,6 +180,10 @@ class Tracker:
     """``(poses [N, 4, 4], true pose [4, 4]) -> degrees [N]``, for histories when the truth is known."""
     render: RenderSettings = AS_TRAINED
     """How every render samples rays (``ns-invert``: :func:`nerfinv_plugin.inversion.session.bound_rays`)."""
+    sample_region: Region = "image"
+    """Where each iteration's pixels are drawn: object: in the frame's ``object_region``; image: anywhere."""
+    rank_region: Region = "object"
+    """Where the ranking pixels are drawn: object: in the frame's ``object_region``; image: anywhere."""
 
     def begin(self, start: Tensor, seed: int | None = None) -> TrackerState:
         """The state before the first step, from the candidates ``start`` [N, 4, 4]."""
@@ -190,8 +198,9 @@ class Tracker:
         the previous estimate, so the best loss of a frame never increases."""
         mc = self.monte_carlo
         # Gauss-Newton keeps one draw for the whole step: from the object's box, where the residuals say something
-        region = frame.rank_region if self.optimizer.method == "gauss-newton" else None
-        sampler = PixelSampler(self.sampling, self.pixels).prepare(frame.image, region)
+        about_object = self.sample_region == "object" or self.optimizer.method == "gauss-newton"
+        sampler = PixelSampler(self.sampling, self.pixels).prepare(frame.image,
+                                                                   frame.object_region if about_object else None)
         same_frame = state.last_frame == frame_index
         if mc.mode == "trajectory" and mc.motion == "filter" and not same_frame:
             self._predict(state, frame_index)
@@ -199,7 +208,8 @@ class Tracker:
             eval_pixels = state.eval_pixels
         else:
             eval_pixels = torch.as_tensor(
-                PixelSampler("random", self.eval_pixels).prepare(frame.image, frame.rank_region).sample(state.rng))
+                PixelSampler("random", self.eval_pixels).prepare(
+                    frame.image, frame.object_region if self.rank_region == "object" else None).sample(state.rng))
         optimizer = self.optimizer if mc.reset_lr or state.step == 0 else _decayed(self.optimizer, state.step)
         error_fn = None
         if self.error_fn is not None and frame.c2w_true is not None:
