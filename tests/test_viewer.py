@@ -187,9 +187,11 @@ def test_the_trail_holds_every_step_and_replays(watched, tmp_path):
     try:
         replay = Replay.open(folder, server, interval_s=0.0, render=True)
         assert replay.play_new() == len(steps) and replay.complete()
+        # viser files each message into its buffer from its own event loop: under load the last may lag
+        _wait(lambda: len(_scene_nodes(server)["/trajectory/estimate/points"].points) == FRAMES, 10,
+              "the whole estimated trajectory in the scene")
         nodes = _scene_nodes(server)
         assert len([n for n in nodes if n.startswith("/kept/")]) == rows[-1].kept
-        assert len(nodes["/trajectory/estimate/points"].points) == FRAMES
     finally:
         server.stop()
 
