@@ -117,7 +117,7 @@ def test_object_radius_is_not_inflated_by_a_fog_of_specks_touching_the_object(to
     clean = object_radius(toy_model, centre)
     field = extent.density_field(toy_model)
     scene = float(toy_model.model.scene_box.aabb.abs().max())
-    threshold = -np.log(1.0 - extent.OPACITY) / (2.0 * scene / (extent.GRID - 1))
+    threshold = extent.base_density(scene)
     lattice = 0.013  # model units: finer than either pass's cells, so every cell samples its own specks
 
     def foggy(points: torch.Tensor) -> torch.Tensor:

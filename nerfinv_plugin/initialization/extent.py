@@ -72,7 +72,7 @@ def object_radius(loaded: LoadedModel, centre: Tensor) -> float:
     lowest threshold from which doubling it changes the radius by less than ``STABLE``."""
     aabb = getattr(loaded.model, "scene_box", None)
     extent = float(aabb.aabb.abs().max()) if aabb is not None else 1.0
-    min_density = -np.log(1.0 - OPACITY) / (2.0 * extent / (GRID - 1))
+    min_density = base_density(extent)
     radius = _radius_at(loaded, centre, extent, min_density)
     if radius is None:
         raise ModelLoadError(f"the model's density is empty within {extent:.3g} model units of the target: is "
@@ -83,6 +83,12 @@ def object_radius(loaded: LoadedModel, centre: Tensor) -> float:
             break
         radius = denser
     return MARGIN * radius
+
+
+def base_density(extent: float) -> float:
+    """The lowest threshold: the density at which a ray loses ``OPACITY`` of its light across a coarse cell
+    of a scene box of half-side ``extent``."""
+    return float(-np.log(1.0 - OPACITY) / (2.0 * extent / (GRID - 1)))
 
 
 def _radius_at(loaded: LoadedModel, centre: Tensor, extent: float, min_density: float) -> float | None:

@@ -94,6 +94,10 @@ class Frame:
     mask: np.ndarray | None = None
     """[H, W] bool: the object as observed, for the silhouette loss. None: no silhouette term here."""
 
+    def region(self, where: Region) -> np.ndarray | None:
+        """The pixels [H, W] bool to draw from for ``where``; None: anywhere in the image."""
+        return self.object_region if where == "object" else None
+
 
 @dataclass
 class StepRecord:
@@ -198,9 +202,8 @@ class Tracker:
         the previous estimate, so the best loss of a frame never increases."""
         mc = self.monte_carlo
         # Gauss-Newton keeps one draw for the whole step: from the object's box, where the residuals say something
-        about_object = self.sample_region == "object" or self.optimizer.method == "gauss-newton"
-        sampler = PixelSampler(self.sampling, self.pixels).prepare(frame.image,
-                                                                   frame.object_region if about_object else None)
+        region = "object" if self.optimizer.method == "gauss-newton" else self.sample_region
+        sampler = PixelSampler(self.sampling, self.pixels).prepare(frame.image, frame.region(region))
         same_frame = state.last_frame == frame_index
         if mc.mode == "trajectory" and mc.motion == "filter" and not same_frame:
             self._predict(state, frame_index)
@@ -208,8 +211,8 @@ class Tracker:
             eval_pixels = state.eval_pixels
         else:
             eval_pixels = torch.as_tensor(
-                PixelSampler("random", self.eval_pixels).prepare(
-                    frame.image, frame.object_region if self.rank_region == "object" else None).sample(state.rng))
+                PixelSampler("random", self.eval_pixels).prepare(frame.image, frame.region(self.rank_region))
+                .sample(state.rng))
         optimizer = self.optimizer if mc.reset_lr or state.step == 0 else _decayed(self.optimizer, state.step)
         error_fn = None
         if self.error_fn is not None and frame.c2w_true is not None:
