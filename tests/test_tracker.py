@@ -228,6 +228,26 @@ def test_a_candidate_whose_loss_turns_nan_is_dropped_and_the_rest_go_on(toy_sequ
     assert not torch.equal(result.c2w[0], start[0])  # the others kept optimizing
 
 
+@pytest.mark.parametrize("length", [1.0, 0.2])
+def test_adams_translation_steps_are_in_units_of_the_length_given(toy_sequence, length):
+    """Adam's first step moves every screw coordinate by its learning rate (its sign the gradient's): radians
+    for the turn, ``length`` model units for the translation. With the object's radius as the length, the
+    step sizes no longer depend on the scale the dataparser gave the scene."""
+    loaded, frames, centre = toy_sequence
+    frame = frames[0]
+    start = _starts(frame.c2w_true, centre, 2, loaded.dataparser_scale, seed=7)
+    sampler = PixelSampler("random", 64).prepare(frame.image)
+    eval_pixels = torch.as_tensor(PixelSampler("random", 64).prepare(frame.image).sample(np.random.default_rng(0)))
+    prepared = PreparedFrame.from_image(loaded, frame.image, frame.intrinsics, sampler, eval_pixels, centre)
+    config = OptimizerConfig(iterations=1, lr=0.01)
+    result = optimize_candidates(loaded, start, prepared, config, np.random.default_rng(0), length=length)
+    to_centre, from_centre = torch.eye(4), torch.eye(4)
+    to_centre[:3, 3], from_centre[:3, 3] = centre, -centre
+    screw = log_se3(from_centre @ result.c2w @ torch.linalg.inv(start) @ to_centre)  # [2, 6]: (w, v)
+    assert torch.allclose(screw[:, :3].abs(), torch.full((2, 3), 0.01), rtol=0.02), screw
+    assert torch.allclose(screw[:, 3:].abs(), torch.full((2, 3), 0.01 * length), rtol=0.02), screw
+
+
 def test_pruning_stops_far_candidates_and_patience_ends_a_step_early(toy_sequence):
     loaded, frames, centre = toy_sequence
     frame = frames[0]

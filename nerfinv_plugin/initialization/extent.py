@@ -7,7 +7,10 @@ of a density grid: a coarse one over the model's scene box, then a fine one abou
 found. Occupied cells are those with the density at which a ray loses a tenth of its light across a
 coarse cell (one threshold for both passes: measured per fine cell, a model trained on RGB images kept
 only its dense core, 0.29 m of a 0.8 m spacecraft); only the occupied region connected to the cells
-nearest the centre counts, so floaters near the training cameras do not inflate the radius.
+nearest the centre counts, so floaters near the training cameras do not inflate the radius. Cells that
+touch at an edge or a corner are connected: a boom or a panel edge that runs diagonally through the grid
+is one thin chain of such cells, and with face contacts alone a fine pass cut one user's-path spacecraft
+to its 0.17 m core.
 
 A model trained on RGB images over black may also fill the space about the object with a thin dark fog
 whose densest specks, above that threshold, touch one another and the object by chance: one such
@@ -22,6 +25,7 @@ from scipy import ndimage
 from torch import Tensor
 
 from nerfinv_plugin.model.loaded import LoadedModel, ModelLoadError
+from nerfinv_plugin.model.render import RenderSettings
 
 GRID = 48
 """Cells per axis of each pass."""
@@ -33,6 +37,8 @@ STABLE = 1.15
 """A radius holds when doubling the threshold shrinks it by less than this factor."""
 DOUBLINGS = 3
 """The threshold is doubled at most this many times (to 8x)."""
+TOUCHING = np.ones((3, 3, 3), dtype=bool)
+"""Cells that share a face, an edge or a corner are connected."""
 
 
 def density_field(loaded: LoadedModel):
@@ -60,7 +66,7 @@ def _occupied_radius(loaded: LoadedModel, centre: Tensor, half: float, min_densi
     occupied = (density >= min_density).reshape(GRID, GRID, GRID).cpu().numpy()
     if not occupied.any():
         return None
-    labels, _ = ndimage.label(occupied)
+    labels, _ = ndimage.label(occupied, TOUCHING)
     offsets = (grid - centre.to(axis)).reshape(GRID, GRID, GRID, 3).cpu().numpy()
     distance = np.linalg.norm(offsets, axis=-1)
     nearest = labels[occupied][np.argmin(distance[occupied])]
@@ -83,6 +89,14 @@ def object_radius(loaded: LoadedModel, centre: Tensor) -> float:
             break
         radius = denser
     return MARGIN * radius
+
+
+def framed_radius(loaded: LoadedModel, centre: Tensor, settings: RenderSettings) -> float:
+    """The object's radius (model units) about ``centre`` [3]: the sphere ``settings`` bound rays to, or,
+    when they do not bound them, the extent read off the model's density."""
+    if settings.target_sphere is not None:
+        return float(settings.target_sphere[1])
+    return object_radius(loaded, torch.as_tensor(centre, dtype=torch.float32, device=loaded.device))
 
 
 def base_density(extent: float) -> float:

@@ -19,7 +19,7 @@ from nerfinv_plugin.initialization.bank import (
     hypothesis_poses,
 )
 from nerfinv_plugin.initialization.detect import Detection
-from nerfinv_plugin.initialization.extent import object_radius
+from nerfinv_plugin.initialization.extent import framed_radius
 from nerfinv_plugin.model.loaded import LoadedModel, ModelLoadError
 from nerfinv_plugin.model.render import Intrinsics, RenderSettings, render
 
@@ -48,10 +48,7 @@ class Initializer:
                on_build: Callable[[int], Callable[[int], None]] | None = None) -> "Initializer":
         """The bank about ``centre`` (model frame) rendered under ``settings``, framing the sphere they bound
         rays to, or the object's extent read off the model when they do not bound them."""
-        if settings.target_sphere is not None:
-            radius = float(settings.target_sphere[1])
-        else:
-            radius = object_radius(loaded, torch.as_tensor(centre, dtype=torch.float32, device=loaded.device))
+        radius = framed_radius(loaded, torch.as_tensor(centre, dtype=torch.float32), settings)
         bank, path, built = cached_bank(loaded, settings, centre, radius, config, on_build)
         entries = bank_entries(bank, config)
         if not entries.views:

@@ -3,7 +3,10 @@
 Each candidate is ``T = C exp([S] theta) C^-1 T0``: screw coordinates ``theta`` (angular part first)
 act on the start pose ``T0`` about the point ``C`` (the target centre by default, so a rotation turns the
 camera around the target instead of swinging the target out of view; ``screw_origin="world"`` gives the
-thesis' plain ``exp([S] theta) T0`` about the model-frame origin). All candidates' rays go through the
+thesis' plain ``exp([S] theta) T0`` about the model-frame origin). The translation part of ``theta`` is in
+units of the object's radius by default: Adam moves every coordinate by about its learning rate whatever
+the gradient's size, so in model units the step sizes would depend on the scale the dataparser gave the
+scene (``translation_unit``). All candidates' rays go through the
 model in chunked batches; each chunk's loss is back-propagated before the next is rendered, and the
 accumulated pose gradient is pushed into ``theta`` once per iteration. Adam, exponentially decaying
 learning rate.
@@ -70,6 +73,13 @@ class OptimizerConfig:
     """as-observed: compare the observed colours as they are; gain-bias: map them to the model's scale with a
     per-channel gain and bias fitted once per frame at the best starting candidate (another camera, exposure
     or light than the training images': :mod:`nerfinv_plugin.inversion.appearance`)."""
+    translation_unit: Literal["object", "model"] = "object"
+    """What one unit of the screw's translation part is. object: the object's radius, so that a step moves
+    the object in the image about as far as a turn of the same size does, on any scene scale. model: one
+    model unit (the thesis). On nerfstudio-data scenes (scaled into the unit cube, a 0.9 m spacecraft is
+    0.17 units) a model-unit step moved the object five times farther than a turn did, and Adam's noisy
+    steps walked candidates 30-45 pixels off the object within one step (docs/benchmarks.md). Gauss-Newton
+    solves for its steps and takes no unit."""
     screw_origin: Literal["target", "world"] = "target"
     """Point the screw motions turn about: the target centre, or the model frame's origin (thesis)."""
     patience: int | None = None
@@ -203,13 +213,15 @@ class CandidateStep:
     [N, 6] on the start poses, Adam with its decaying learning rate, and which candidates go on."""
 
     def __init__(self, loaded: LoadedModel, start: Tensor, frame: PreparedFrame, config: OptimizerConfig,
-                 min_candidates: int = 1, settings: RenderSettings = AS_TRAINED):
+                 min_candidates: int = 1, settings: RenderSettings = AS_TRAINED, length: float = 1.0):
         device = loaded.device
         self.loaded, self.frame, self.config, self.min_candidates = loaded, frame, config, min_candidates
         self.settings = settings
         self.start = start.to(device, torch.float32)
         n = self.start.shape[0]
         self.theta = torch.zeros(n, 6, device=device, requires_grad=True)
+        self.units = torch.tensor([1.0, 1.0, 1.0, length, length, length], device=device)
+        """What one unit of each screw coordinate is: radians, then ``length`` model units."""
         if config.screw_origin == "target":
             self.to_centre, self.from_centre = centred(frame.centre.to(device, torch.float32))
         else:
@@ -228,7 +240,7 @@ class CandidateStep:
 
     def poses(self) -> Tensor:
         """Current candidates [N, 4, 4]: ``C exp([S] theta) C^-1 T0``."""
-        return self.to_centre @ exp_se3(self.theta) @ self.from_centre @ self.start
+        return self.to_centre @ exp_se3(self.theta * self.units) @ self.from_centre @ self.start
 
     def iterate(self, rng: np.random.Generator) -> IterationRecord:
         """One iteration on fresh pixels drawn with ``rng``: render the active candidates, take an Adam
@@ -301,17 +313,19 @@ def rank(loaded: LoadedModel, final: Tensor, alive: Tensor, active: Tensor, fram
 
 def optimize_candidates(loaded: LoadedModel, start: Tensor, frame: PreparedFrame, config: OptimizerConfig,
                         rng: np.random.Generator, on_iteration: Callable[[int, IterationRecord], None] | None = None,
-                        min_candidates: int = 1, settings: RenderSettings = AS_TRAINED) -> StepResult:
+                        min_candidates: int = 1, settings: RenderSettings = AS_TRAINED,
+                        length: float = 1.0) -> StepResult:
     """Optimize candidates ``start`` [N, 4, 4] against the prepared ``frame`` for at most
-    ``iterations_per_step(config)`` iterations, rendering under ``settings``, drawing each iteration's pixels with
-    ``rng``. ``on_iteration(i, record)`` sees each iteration's history record as it is made (progress
-    bars). Pruning never leaves fewer than ``min_candidates``. ``config.method`` picks Adam or Gauss-Newton."""
+    ``iterations_per_step(config)`` iterations, rendering under ``settings``, drawing each iteration's pixels
+    with ``rng``; Adam's translation steps are in units of ``length`` (model units). ``on_iteration(i,
+    record)`` sees each iteration's history record as it is made (progress bars). Pruning never leaves
+    fewer than ``min_candidates``. ``config.method`` picks Adam or Gauss-Newton."""
     if config.method == "gauss-newton":
         from nerfinv_plugin.inversion.gauss_newton import GaussNewtonStep  # it builds on this module's records
 
         step = GaussNewtonStep(loaded, start, frame, config, min_candidates, settings)
     else:
-        step = CandidateStep(loaded, start, frame, config, min_candidates, settings)
+        step = CandidateStep(loaded, start, frame, config, min_candidates, settings, length)
     for iteration in range(iterations_per_step(config)):
         record = step.iterate(rng)
         if on_iteration is not None:

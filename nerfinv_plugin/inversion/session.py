@@ -28,7 +28,7 @@ from nerfinv_plugin.geometry.errors import label_error, rotation_error_deg
 from nerfinv_plugin.geometry.frames import c2w_opencv_to_label, label_to_c2w_opencv, opencv_to_opengl
 from nerfinv_plugin.geometry.se3 import geodesic_deg
 from nerfinv_plugin.initialization.detect import Detection, MaskError, detection_from_mask, find_object, read_masks
-from nerfinv_plugin.initialization.extent import object_radius
+from nerfinv_plugin.initialization.extent import framed_radius, object_radius
 from nerfinv_plugin.initialization.initializer import Initializer, silhouette_iou
 from nerfinv_plugin.inversion import starts
 from nerfinv_plugin.inversion.clock import Clock, fraction_between, interpolated_pose
@@ -198,8 +198,9 @@ class Inversion:
             initializer = self._initializer(loaded, centre, settings)
         start = self._starts(loaded, sequence, centre, detections, initializer)
         setup_s = time.perf_counter() - setup
+        size = framed_radius(loaded, centre, settings) if c.optimizer.translation_unit == "object" else None
         tracker = Tracker(loaded, centre, c.optimizer, c.monte_carlo, c.sampling, c.pixels, c.eval_pixels,
-                          c.seed, rotation_error_deg, settings, c.sample_region, c.rank_region)
+                          c.seed, rotation_error_deg, settings, c.sample_region, c.rank_region, size)
         self.folder.path.mkdir(parents=True, exist_ok=True)
         if not (self.folder.path / CONFIG).is_file():
             write_config(self.folder.path / CONFIG, dataclasses.replace(c, resume=None))

@@ -188,6 +188,9 @@ class Tracker:
     """Where each iteration's pixels are drawn: object: in the frame's ``object_region``; image: anywhere."""
     rank_region: Region = "object"
     """Where the ranking pixels are drawn: object: in the frame's ``object_region``; image: anywhere."""
+    object_radius: float | None = None
+    """The object's radius in model units, when known: the unit of Adam's translation steps under
+    ``translation_unit="object"`` (unknown: one model unit)."""
 
     def begin(self, start: Tensor, seed: int | None = None) -> TrackerState:
         """The state before the first step, from the candidates ``start`` [N, 4, 4]."""
@@ -227,9 +230,10 @@ class Tracker:
                                                                                  eval_pixels)
         prepared = PreparedFrame.from_image(self.loaded, frame.image, frame.intrinsics, sampler, eval_pixels,
                                             self.centre, error_fn, silhouette, appearance)
+        length = self.object_radius if optimizer.translation_unit == "object" and self.object_radius else 1.0
         result = optimize_candidates(self.loaded, state.candidates, prepared, optimizer, state.rng, on_iteration,
                                      min_candidates=keep_count(mc, state.step, state.candidates.shape[0]),
-                                     settings=self.render)
+                                     settings=self.render, length=length)
         alive = int(torch.isfinite(result.losses).sum())
         if alive == 0:
             raise FloatingPointError(f"every candidate's loss became NaN or infinite on frame "
