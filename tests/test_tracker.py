@@ -15,7 +15,7 @@ from nerfinv_plugin.data.sequences import SequenceError
 from nerfinv_plugin.geometry.errors import rotation_error_deg
 from nerfinv_plugin.geometry.frames import label_to_c2w_opencv, opencv_to_opengl
 from nerfinv_plugin.geometry.se3 import exp_se3, geodesic_deg, log_se3
-from nerfinv_plugin.inversion.optimizer import OptimizerConfig, PreparedFrame, optimize_candidates
+from nerfinv_plugin.inversion.optimizer import OptimizerConfig, PreparedFrame, centred, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.session import InversionError, shirt_label_pool
 from nerfinv_plugin.inversion.settings import InvertConfig, StartConfig
@@ -241,8 +241,7 @@ def test_adams_translation_steps_are_in_units_of_the_length_given(toy_sequence, 
     prepared = PreparedFrame.from_image(loaded, frame.image, frame.intrinsics, sampler, eval_pixels, centre)
     config = OptimizerConfig(iterations=1, lr=0.01)
     result = optimize_candidates(loaded, start, prepared, config, np.random.default_rng(0), length=length)
-    to_centre, from_centre = torch.eye(4), torch.eye(4)
-    to_centre[:3, 3], from_centre[:3, 3] = centre, -centre
+    to_centre, from_centre = centred(centre)
     screw = log_se3(from_centre @ result.c2w @ torch.linalg.inv(start) @ to_centre)  # [2, 6]: (w, v)
     assert torch.allclose(screw[:, :3].abs(), torch.full((2, 3), 0.01), rtol=0.02), screw
     assert torch.allclose(screw[:, 3:].abs(), torch.full((2, 3), 0.01 * length), rtol=0.02), screw
