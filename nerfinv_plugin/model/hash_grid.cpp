@@ -1,13 +1,16 @@
 // nerfstudio's multi-resolution hash encoding, forward and backward with respect to the positions, for
 // frozen tables on the CPU. One pass per point and level does what the torch version spreads over a
 // dozen tensor operations (scale, floor, hash eight corners, gather, blend), so nothing is written to
-// memory between them. Same hash, same table layout, same corner weights as
+// memory between them. When the positions need a gradient the same pass also writes the features'
+// Jacobian, and the backward is a small contraction with it instead of a second round of gathers. Same
+// hash, same table layout, same trilinear weights as
 // nerfstudio.field_components.encodings.HashEncoding.pytorch_fwd.
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
 #include <cmath>
 #include <cstdint>
+#include <vector>
 
 namespace {
 
@@ -74,65 +77,100 @@ struct Grid {
   }
 };
 
-}  // namespace
-
-// positions [N, 3] in [0, 1] -> features [N, L * F]
-torch::Tensor hash_grid_forward(torch::Tensor positions, torch::Tensor table, torch::Tensor scalings,
-                                torch::Tensor offsets, int64_t table_size) {
-  const Grid grid(positions, table, scalings, offsets, table_size);
-  const int64_t levels = grid.levels, f = grid.f;
-  auto out = torch::empty({grid.n, levels * f}, positions.options());
-  float* dst = out.data_ptr<float>();
-  at::parallel_for(0, grid.n, 256, [&](int64_t begin, int64_t end) {
-    for (int64_t i = begin; i < end; ++i) {
-      for (int64_t l = 0; l < levels; ++l) {
-        const Level c = locate(grid.pos + 3 * i, grid.scl[l]);
-        float* o = dst + (i * levels + l) * f;
-        for (int64_t k = 0; k < f; ++k) o[k] = 0.0f;
-        for (int z = 0; z < 2; ++z)
-          for (int y = 0; y < 2; ++y)
-            for (int x = 0; x < 2; ++x) {
-              const float w = c.weight[2][z] * (c.weight[1][y] * c.weight[0][x]);
-              const float* row = grid.row(c, l, x, y, z);
-              for (int64_t k = 0; k < f; ++k) o[k] += w * row[k];
-            }
+// One point on one level: its F features into ``o`` and, with ``JAC``, the features' derivatives with
+// respect to the point's three coordinates into ``j`` ([F][3]). The derivative comes from the same eight
+// corner rows the forward reads, so computing it here costs arithmetic, not memory traffic; a backward
+// that gathered the corners again would pay the gathers twice.
+template <int FIXED_F, bool JAC>
+inline void encode_level(const Grid& grid, const float* p, int64_t l, int64_t f_runtime, float* o, float* j) {
+  const int64_t f = FIXED_F > 0 ? FIXED_F : f_runtime;
+  const Level c = locate(p, grid.scl[l]);
+  const float s = grid.scl[l];  // d frac / d position
+  const float fx = c.weight[0][1], fy = c.weight[1][1], fz = c.weight[2][1];
+  const float* v[2][2][2];  // [z][y][x] corner rows
+  for (int z = 0; z < 2; ++z)
+    for (int y = 0; y < 2; ++y)
+      for (int x = 0; x < 2; ++x) v[z][y][x] = grid.row(c, l, x, y, z);
+  for (int64_t k = 0; k < f; ++k) {
+    // nerfstudio's trilinear blend as three lerps (along x, then y, then z; equal to its sum of corner
+    // weights times rows up to float rounding), and its derivative along each axis: the difference of
+    // the two faces across that axis, blended over the other two axes.
+    float a[2][2], da[2][2];  // along x, for each (z, y)
+    for (int z = 0; z < 2; ++z)
+      for (int y = 0; y < 2; ++y) {
+        const float lo = v[z][y][0][k], hi = v[z][y][1][k];
+        a[z][y] = (1.0f - fx) * lo + fx * hi;
+        da[z][y] = hi - lo;
       }
+    const float b0 = (1.0f - fy) * a[0][0] + fy * a[0][1], b1 = (1.0f - fy) * a[1][0] + fy * a[1][1];
+    o[k] = (1.0f - fz) * b0 + fz * b1;
+    if (JAC) {
+      const float dx0 = (1.0f - fy) * da[0][0] + fy * da[0][1], dx1 = (1.0f - fy) * da[1][0] + fy * da[1][1];
+      j[3 * k] = s * ((1.0f - fz) * dx0 + fz * dx1);
+      j[3 * k + 1] = s * ((1.0f - fz) * (a[0][1] - a[0][0]) + fz * (a[1][1] - a[1][0]));
+      j[3 * k + 2] = s * (b1 - b0);
     }
-  });
-  return out;
+  }
 }
 
-// d loss / d positions [N, 3] from d loss / d features [N, L * F]; the table gets no gradient.
-torch::Tensor hash_grid_backward(torch::Tensor grad_out, torch::Tensor positions, torch::Tensor table,
-                                 torch::Tensor scalings, torch::Tensor offsets, int64_t table_size) {
-  const Grid grid(positions, table, scalings, offsets, table_size);
+template <int FIXED_F, bool JAC>
+void encode_all(const Grid& grid, float* out, float* jac) {
   const int64_t levels = grid.levels, f = grid.f;
-  TORCH_CHECK(grad_out.scalar_type() == torch::kFloat32 && grad_out.is_contiguous() &&
-                  grad_out.numel() == grid.n * levels * f,
-              "grad_out must be a contiguous float32 tensor [N, L * F]");
-  auto grad = torch::zeros({grid.n, 3}, positions.options());
-  const float* g = grad_out.data_ptr<float>();
-  float* dst = grad.data_ptr<float>();
   at::parallel_for(0, grid.n, 256, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i)
+      for (int64_t l = 0; l < levels; ++l) {
+        const int64_t at = (i * levels + l) * f;
+        encode_level<FIXED_F, JAC>(grid, grid.pos + 3 * i, l, f, out + at, JAC ? jac + 3 * at : nullptr);
+      }
+  });
+}
+
+template <bool JAC>
+void encode(const Grid& grid, float* out, float* jac) {
+  // nerfacto's grids have 2 features per level: a fixed count lets the compiler unroll the feature loops.
+  if (grid.f == 2)
+    encode_all<2, JAC>(grid, out, jac);
+  else
+    encode_all<0, JAC>(grid, out, jac);
+}
+
+}  // namespace
+
+// positions [N, 3] in [0, 1] -> (features [N, L * F], and with ``jacobian`` d features / d positions
+// [N, L * F, 3], else an empty tensor).
+std::vector<torch::Tensor> hash_grid_forward(torch::Tensor positions, torch::Tensor table, torch::Tensor scalings,
+                                             torch::Tensor offsets, int64_t table_size, bool jacobian) {
+  const Grid grid(positions, table, scalings, offsets, table_size);
+  auto out = torch::empty({grid.n, grid.levels * grid.f}, positions.options());
+  if (!jacobian) {
+    encode<false>(grid, out.data_ptr<float>(), nullptr);
+    return {out, torch::empty({0}, positions.options())};
+  }
+  auto jac = torch::empty({grid.n, grid.levels * grid.f, 3}, positions.options());
+  encode<true>(grid, out.data_ptr<float>(), jac.data_ptr<float>());
+  return {out, jac};
+}
+
+// d loss / d positions [N, 3] from d loss / d features [N, K] and the forward's Jacobian [N, K, 3].
+torch::Tensor hash_grid_backward(torch::Tensor grad_out, torch::Tensor jacobian) {
+  TORCH_CHECK(grad_out.scalar_type() == torch::kFloat32 && grad_out.is_contiguous() && grad_out.dim() == 2,
+              "grad_out must be a contiguous float32 tensor [N, K]");
+  TORCH_CHECK(jacobian.scalar_type() == torch::kFloat32 && jacobian.is_contiguous() && jacobian.dim() == 3 &&
+                  jacobian.size(0) == grad_out.size(0) && jacobian.size(1) == grad_out.size(1) &&
+                  jacobian.size(2) == 3,
+              "jacobian must be a contiguous float32 tensor [N, K, 3] matching grad_out");
+  const int64_t n = grad_out.size(0), k = grad_out.size(1);
+  auto grad = torch::empty({n, 3}, grad_out.options());
+  const float* g = grad_out.data_ptr<float>();
+  const float* jac = jacobian.data_ptr<float>();
+  float* dst = grad.data_ptr<float>();
+  at::parallel_for(0, n, 1024, [&](int64_t begin, int64_t end) {
     for (int64_t i = begin; i < end; ++i) {
       float acc[3] = {0.0f, 0.0f, 0.0f};
-      for (int64_t l = 0; l < levels; ++l) {
-        const Level c = locate(grid.pos + 3 * i, grid.scl[l]);
-        const float* gl = g + (i * levels + l) * f;
-        float d[3] = {0.0f, 0.0f, 0.0f};  // d features . grad / d frac, per axis
-        for (int z = 0; z < 2; ++z)
-          for (int y = 0; y < 2; ++y)
-            for (int x = 0; x < 2; ++x) {
-              const float* row = grid.row(c, l, x, y, z);
-              float dot = 0.0f;
-              for (int64_t k = 0; k < f; ++k) dot += gl[k] * row[k];
-              // The weight is w_x * w_y * w_z with w = 1 - frac on the floor corner and frac on the ceil one.
-              d[0] += (x ? 1.0f : -1.0f) * c.weight[1][y] * c.weight[2][z] * dot;
-              d[1] += (y ? 1.0f : -1.0f) * c.weight[0][x] * c.weight[2][z] * dot;
-              d[2] += (z ? 1.0f : -1.0f) * c.weight[0][x] * c.weight[1][y] * dot;
-            }
-        for (int a = 0; a < 3; ++a) acc[a] += grid.scl[l] * d[a];
-      }
+      const float* gi = g + i * k;
+      const float* ji = jac + i * k * 3;
+      for (int64_t m = 0; m < k; ++m)
+        for (int a = 0; a < 3; ++a) acc[a] += gi[m] * ji[3 * m + a];
       for (int a = 0; a < 3; ++a) dst[3 * i + a] = acc[a];
     }
   });
@@ -140,6 +178,6 @@ torch::Tensor hash_grid_backward(torch::Tensor grad_out, torch::Tensor positions
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("forward", &hash_grid_forward, "hash grid encoding, frozen table");
-  m.def("backward", &hash_grid_backward, "gradient of the hash grid encoding with respect to the positions");
+  m.def("forward", &hash_grid_forward, "hash grid encoding of a frozen table, optionally with its Jacobian");
+  m.def("backward", &hash_grid_backward, "gradient with respect to the positions, from the forward's Jacobian");
 }

@@ -4,10 +4,13 @@ Inverting a model spends most of its CPU time in the hash encodings (docs/benchm
 forward, even fused, runs a dozen tensor operations per level whose intermediates ([rays x samples x
 levels x 8] indices, weights and features) go through memory, and autograd records all of them for a
 backward that only needs the gradient with respect to the positions. ``hash_grid.cpp`` does the same
-arithmetic in one pass per point and level, and its backward recomputes the corners instead of storing
-them. It is built with torch's C++ extension loader the first time it is needed (about 30 s; then
-cached by torch under ``~/.cache/torch_extensions``), and used only where it computes exactly what
-nerfstudio computes: float32 positions on the CPU and a table that does not require gradients. Anything
+arithmetic in one pass per point and level; where the positions need a gradient, that pass also writes
+the features' Jacobian with respect to them ([points, levels x features, 3]: for nerfacto-tiny's field 48
+floats a sample), so the backward is one contraction and reads no table row again. It runs on torch's
+intra-op threads (built with OpenMP, it shares the libgomp torch loaded). It is built with torch's C++
+extension loader the first time it is needed (about 30 s; then cached by torch under
+``~/.cache/torch_extensions``), and used only where it computes what nerfstudio computes (to float
+rounding): float32 positions on the CPU and a table that does not require gradients. Anything
 else (training, CUDA, double precision) goes through :func:`fused_hash_forward`.
 
 Set ``NERFINV_HASH_KERNEL=0`` to never build or use it. Where it cannot be built (no C++ compiler), a
@@ -48,7 +51,10 @@ def extension() -> types.ModuleType | None:
     # The source's hash in the name: an edited kernel is rebuilt instead of loading a stale cached one.
     digest = hashlib.sha256(SOURCE.read_bytes()).hexdigest()[:12]
     try:
-        return load(name=f"nerfinv_hash_grid_{digest}", sources=[str(SOURCE)], extra_cflags=["-O3"], verbose=False)
+        # -fopenmp: at::parallel_for runs on one thread in code compiled without it. The extension then uses
+        # the libgomp torch has already loaded (same soname), so torch's thread count applies.
+        return load(name=f"nerfinv_hash_grid_{digest}_omp", sources=[str(SOURCE)], extra_cflags=["-O3", "-fopenmp"],
+                    extra_ldflags=["-fopenmp"], verbose=False)
     except Exception as err:  # noqa: BLE001 - a missing compiler, headers or ninja all mean the same here
         first = (str(err).strip().splitlines() or [""])[-1][:200]
         warnings.warn(f"nerfinv: the compiled hash-grid kernel could not be built ({type(err).__name__}: {first}); "
@@ -59,18 +65,19 @@ def extension() -> types.ModuleType | None:
 
 class _FrozenHashGrid(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, positions: Tensor, table: Tensor, scalings: Tensor, offsets: Tensor, size: int) -> Tensor:
-        ctx.save_for_backward(positions, table, scalings, offsets)
-        ctx.size = size
+    def forward(ctx, positions: Tensor, table: Tensor, scalings: Tensor, offsets: Tensor, size: int,
+                jacobian: bool) -> Tensor:
         with torch.profiler.record_function("nerfinv::hash_grid_forward"):  # named in profiles, else unseen
-            return extension().forward(positions, table, scalings, offsets, size)
+            features, jac = extension().forward(positions, table, scalings, offsets, size, jacobian)
+        ctx.save_for_backward(jac)
+        return features
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        positions, table, scalings, offsets = ctx.saved_tensors
+        (jacobian,) = ctx.saved_tensors
         with torch.profiler.record_function("nerfinv::hash_grid_backward"):
-            grad_positions = extension().backward(grad.contiguous(), positions, table, scalings, offsets, ctx.size)
-        return grad_positions, None, None, None, None
+            grad_positions = extension().backward(grad.contiguous(), jacobian)
+        return grad_positions, None, None, None, None, None
 
 
 def kernel_hash_forward(self: HashEncoding, in_tensor: Tensor) -> Tensor:
@@ -80,8 +87,11 @@ def kernel_hash_forward(self: HashEncoding, in_tensor: Tensor) -> Tensor:
             or extension() is None):
         return fused_hash_forward(self, in_tensor)
     flat = in_tensor.reshape(-1, 3).contiguous()
+    # The Jacobian only where a graph is being recorded: nerfacto marks its sample positions as requiring a
+    # gradient also when it evaluates the proposal networks under no_grad, which the kernel cannot see.
+    jacobian = torch.is_grad_enabled() and flat.requires_grad
     out = _FrozenHashGrid.apply(flat, self.hash_table.detach(), self.scalings.to(torch.float32).contiguous(),
-                                self.hash_offset.to(torch.int64), int(self.hash_table_size))
+                                self.hash_offset.to(torch.int64), int(self.hash_table_size), jacobian)
     return out.view(*in_tensor.shape[:-1], out.shape[-1])
 
 
