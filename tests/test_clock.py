@@ -2,6 +2,7 @@
 against hand-worked tables, SE(3) interpolation against hand-built poses, the latency fields of the results,
 and a realtime run on the toy model that resumes to the numbers of an uninterrupted one."""
 
+import csv
 import json
 import math
 from dataclasses import replace
@@ -237,6 +238,12 @@ def test_realtime_run_skips_interpolates_and_resumes_to_the_same_numbers(toy_run
     summary = whole.summary()
     assert summary.clock == "realtime" and summary.frames_skipped == 2 and summary.complete
     assert summary.latency_s.mean == pytest.approx(45.0 / 4) and summary.estimated_only.frames == 4
+    with open(whole.path / "results.csv", newline="") as handle:  # the CSV carries the clock's columns too
+        table = list(csv.DictReader(handle))
+    assert [row["interpolated"] for row in table] == ["False", "False", "True", "False", "True", "False"]
+    assert [float(row["latency_s"]) for row in table] == [9.0, 13.0, 17.0, 12.0, 16.0, 11.0]
+    assert [float(row["estimated_s"]) - float(row["observed_s"]) for row in table] == [9.0, 13.0, 17.0, 12.0, 16.0,
+                                                                                      11.0]
 
     def stop_in_third_step(i: int, record: IterationRecord) -> None:
         if len(RunFolder(tmp_path / "e" / "nerfinv" / "cut").steps()) == 2 and i == 3:

@@ -75,3 +75,32 @@ def test_max_norm_contraction_matches_nerfstudio(order, device):
     (grad_ref,) = torch.autograd.grad((expected * cotangent).sum(), [x])
     (grad_ours,) = torch.autograd.grad((got * cotangent).sum(), [x])
     torch.testing.assert_close(grad_ours, grad_ref)
+
+
+def test_the_kernel_is_built_with_openmp_else_on_one_thread_else_not_at_all(monkeypatch):
+    """A compiler without OpenMP still builds the kernel (one thread); with no working build a warning says
+    so once and the torch forward is used. Each set of flags has its own cached build."""
+    import torch.utils.cpp_extension as cpp_extension
+
+    monkeypatch.setenv("NERFINV_HASH_KERNEL", "1")
+    builds: list[tuple[str, list[str], list[str]]] = []
+
+    def load(name, sources, extra_cflags, extra_ldflags, verbose):
+        builds.append((name, extra_cflags, extra_ldflags))
+        if "-fopenmp" in extra_cflags or fail_all:
+            raise RuntimeError("c++: error: unsupported option '-fopenmp'")
+        return "single-threaded kernel"
+
+    monkeypatch.setattr(cpp_extension, "load", load)
+    try:
+        fail_all = False
+        hash_kernel.extension.cache_clear()
+        assert hash_kernel.extension() == "single-threaded kernel"
+        assert [flags for _, flags, _ in builds] == [["-O3", "-fopenmp"], ["-O3"]]
+        assert builds[0][2] == ["-fopenmp"] and builds[1][2] == [] and builds[0][0] != builds[1][0]
+        fail_all = True
+        hash_kernel.extension.cache_clear()
+        with pytest.warns(RuntimeWarning, match="could not be built"):
+            assert hash_kernel.extension() is None
+    finally:
+        hash_kernel.extension.cache_clear()

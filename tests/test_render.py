@@ -141,18 +141,36 @@ def test_batch_of_candidates_equals_single_renders_and_chunking_changes_nothing(
     pixels = _object_pixels(loaded, c2w0.numpy(), intrinsics, 120)
     poses.requires_grad_(True)
     batched = render(loaded, poses, intrinsics, pixels)
-    (batched.rgb.square().sum() + batched.depth.sum()).backward()
+    (batched.rgb.square().sum() + batched.accumulation.sum()).backward()
     grad_batched = poses.grad.clone()
     poses.grad = None
     chunked = render(loaded, poses, intrinsics, pixels, RenderSettings(chunk_rays=37))  # chunks cut across candidates
-    (chunked.rgb.square().sum() + chunked.depth.sum()).backward()
+    (chunked.rgb.square().sum() + chunked.accumulation.sum()).backward()
     torch.testing.assert_close(chunked.rgb, batched.rgb, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(chunked.accumulation, batched.accumulation, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(poses.grad, grad_batched, rtol=1e-4, atol=1e-6)
     for i in range(4):
         single = render(loaded, poses[i:i + 1].detach(), intrinsics, pixels)
         torch.testing.assert_close(single.rgb[0], batched.rgb[i].detach(), rtol=1e-5, atol=1e-6)
-    assert batched.rgb.shape == (4, 120, 3) and batched.depth.shape == (4, 120, 1)
+    assert batched.rgb.shape == (4, 120, 3) and batched.accumulation.shape == (4, 120, 1)
+
+
+def test_colour_and_accumulation_are_nerfstudios_own_outputs_and_gradients(toy):
+    """Renders of nerfacto skip the depths its get_outputs also computes; colour, accumulation and the pose
+    gradient through them are the numbers of nerfstudio's forward all the same."""
+    loaded, data = toy
+    c2w_data, intrinsics, _ = _view(data, "test", 2)
+    c2w = torch.as_tensor(loaded.dataset_to_model(c2w_data), dtype=torch.float32)[None].requires_grad_(True)
+    pixels = _object_pixels(loaded, c2w[0].detach().numpy(), intrinsics, 96)
+    ours = render(loaded, c2w, intrinsics, pixels, RenderSettings(chunk_rays=10_000))
+    (ours.rgb.square().sum() + ours.accumulation.sum()).backward()
+    grad_ours, c2w.grad = c2w.grad.clone(), None
+    outputs = loaded.model(ray_bundle(loaded, c2w, intrinsics, pixels))  # nerfstudio's Model.forward
+    assert {"depth", "expected_depth", "prop_depth_0"} <= set(outputs)
+    (outputs["rgb"].square().sum() + outputs["accumulation"].sum()).backward()
+    torch.testing.assert_close(ours.rgb[0], outputs["rgb"].detach(), rtol=0, atol=0)
+    torch.testing.assert_close(ours.accumulation[0], outputs["accumulation"].detach(), rtol=0, atol=0)
+    torch.testing.assert_close(grad_ours, c2w.grad, rtol=1e-6, atol=1e-9)
 
 
 def test_rays_and_outputs_follow_the_pose_convention(toy):
@@ -213,14 +231,14 @@ def test_rays_bounded_to_a_target_sphere_render_as_sharp_with_a_third_of_the_sam
     sampler = loaded.model.proposal_sampler
     trained = (sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray)
     rendered_rays = []
-    forward = loaded.model.forward
+    forward = sampler.forward  # every render of a ray bundle samples it once, through whichever path
 
-    def counting(bundle):
+    def counting(bundle, **kwargs):
         rendered_rays.append(len(bundle))
-        return forward(bundle)
+        return forward(bundle, **kwargs)
 
     settings = render_settings(loaded, (centre, 1.0 * loaded.dataparser_scale), (16, 8), 12)
-    monkeypatch.setattr(loaded.model, "forward", counting)
+    monkeypatch.setattr(sampler, "forward", counting)
     bounded = render_image(loaded, c2w, intrinsics, settings)
     image_rays = sum(rendered_rays)
     rows, cols = np.meshgrid(np.arange(intrinsics.height), np.arange(intrinsics.width), indexing="ij")
@@ -242,11 +260,11 @@ def test_rays_bounded_to_a_target_sphere_render_as_sharp_with_a_third_of_the_sam
     bounded_grad = leaf.grad.clone()
     # The sample counts hold only while a render runs, also when it fails.
     assert (sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray) == trained
-    monkeypatch.setattr(loaded.model, "forward", lambda bundle: 1 / 0)
+    monkeypatch.setattr(sampler, "forward", lambda bundle, **kwargs: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         render(loaded, leaf, intrinsics, pixels, settings)
     assert (sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray) == trained
-    monkeypatch.setattr(loaded.model, "forward", forward)
+    monkeypatch.setattr(sampler, "forward", forward)
     # Gradients reach the pose through the bounded rays, and point where the unbounded rays' do (0.99 here).
     leaf.grad = None
     (render(loaded, leaf, intrinsics, pixels).rgb[0] - target).pow(2).mean().backward()

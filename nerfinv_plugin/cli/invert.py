@@ -82,11 +82,11 @@ def invert(config: InvertConfig, console: Console, viewer: LiveViewer | None = N
                TextColumn("loss {task.fields[loss]}  error {task.fields[error]}"))
     with Progress(*columns, console=console) as progress:
         task = progress.add_task("loading", total=None, loss="-", error="-")
-        steps = 0
+        steps, iterations_per_step = 0, 0
 
         def begin(total_steps: int, done_steps: int, per_step: int) -> None:
-            nonlocal steps
-            steps = total_steps
+            nonlocal steps, iterations_per_step
+            steps, iterations_per_step = total_steps, per_step
             console.print(f"results: {inversion.folder.path}")
             progress.update(task, total=total_steps * per_step, completed=done_steps * per_step,
                             description=f"step {done_steps + 1}/{total_steps}")
@@ -103,7 +103,13 @@ def invert(config: InvertConfig, console: Console, viewer: LiveViewer | None = N
             bank_task = progress.add_task("view bank", total=views, loss="-", error="-")
             return lambda done: progress.update(bank_task, advance=done)
 
-        events = Events(begin, iteration, step, lambda row: console.print(_frame_line(row)),
+        def frame(row: FrameResult) -> None:
+            # Frames the realtime clock skipped, and steps that stopped early, run fewer iterations than the
+            # bar's total counts: a finished frame moves the bar to its share of the total.
+            progress.update(task, completed=(row.index + 1) * iterations_per_step * inversion.config.steps_per_frame)
+            console.print(_frame_line(row))
+
+        events = Events(begin, iteration, step, frame,
                         lambda message: console.print(f"[yellow]{escape(message)}[/yellow]"),
                         lambda message: console.print(escape(message)), bank)
         inversion = Inversion.resume(config.resume, events) if config.resume else Inversion.create(config, events)

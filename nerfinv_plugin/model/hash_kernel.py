@@ -48,19 +48,23 @@ def extension() -> types.ModuleType | None:
     logging.getLogger("torch.utils.cpp_extension").setLevel(logging.ERROR)
     from torch.utils.cpp_extension import load
 
-    # The source's hash in the name: an edited kernel is rebuilt instead of loading a stale cached one.
-    digest = hashlib.sha256(SOURCE.read_bytes()).hexdigest()[:12]
-    try:
-        # -fopenmp: at::parallel_for runs on one thread in code compiled without it. The extension then uses
-        # the libgomp torch has already loaded (same soname), so torch's thread count applies.
-        return load(name=f"nerfinv_hash_grid_{digest}_omp", sources=[str(SOURCE)], extra_cflags=["-O3", "-fopenmp"],
-                    extra_ldflags=["-fopenmp"], verbose=False)
-    except Exception as err:  # noqa: BLE001 - a missing compiler, headers or ninja all mean the same here
-        first = (str(err).strip().splitlines() or [""])[-1][:200]
-        warnings.warn(f"nerfinv: the compiled hash-grid kernel could not be built ({type(err).__name__}: {first}); "
-                      "using the slower torch forward. Install a C++ compiler (g++) and ninja to get it.",
-                      RuntimeWarning, stacklevel=2)
-        return None
+    # -fopenmp: at::parallel_for runs its whole range on one thread in code compiled without it. The extension
+    # then uses the libgomp torch has already loaded (same soname), so torch's thread count applies. A
+    # compiler without OpenMP (Apple's clang) still gets the kernel, on one thread.
+    failure = None
+    for flags in (["-O3", "-fopenmp"], ["-O3"]):
+        # The source and flags hashed into the name: an edited kernel is rebuilt, never loaded stale.
+        digest = hashlib.sha256(SOURCE.read_bytes() + " ".join(flags).encode()).hexdigest()[:12]
+        try:
+            return load(name=f"nerfinv_hash_grid_{digest}", sources=[str(SOURCE)], extra_cflags=flags,
+                        extra_ldflags=flags[1:], verbose=False)
+        except Exception as err:  # noqa: BLE001 - a missing compiler, headers or ninja all mean the same here
+            failure = err
+    first = (str(failure).strip().splitlines() or [""])[-1][:200]
+    warnings.warn(f"nerfinv: the compiled hash-grid kernel could not be built ({type(failure).__name__}: {first}); "
+                  "using the slower torch forward. Install a C++ compiler (g++) and ninja to get it.",
+                  RuntimeWarning, stacklevel=2)
+    return None
 
 
 class _FrozenHashGrid(torch.autograd.Function):

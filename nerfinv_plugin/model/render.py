@@ -21,6 +21,10 @@ import numpy as np
 import psutil
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.model_components.losses import scale_gradients_by_distance_squared
+from nerfstudio.models.base_model import Model
+from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.models.splatfacto import SplatfactoModel
 from torch import Tensor
 
@@ -51,16 +55,15 @@ class Intrinsics:
 
 
 class RenderOutput(NamedTuple):
-    """Per-ray outputs, shaped [..., 3] / [..., 1]; ``None`` where the model has no such output."""
+    """Per-ray outputs, shaped [..., 3] / [..., 1]; ``None`` where the model has no such output. Inversion
+    compares colours and silhouettes; depths are not rendered."""
 
     rgb: Tensor
     accumulation: Tensor | None
-    depth: Tensor | None
 
 
 # Vanilla NeRF and mip-NeRF name their outputs per sampling level; the fine level is the answer.
-_OUTPUT_NAMES = {"rgb": ("rgb", "rgb_fine"), "accumulation": ("accumulation", "accumulation_fine"),
-                 "depth": ("expected_depth", "depth", "depth_fine")}
+_OUTPUT_NAMES = {"rgb": ("rgb", "rgb_fine"), "accumulation": ("accumulation", "accumulation_fine")}
 
 
 def _pick(outputs: dict[str, Tensor], kind: str) -> Tensor | None:
@@ -252,17 +255,35 @@ def render_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixe
     for start in range(0, rendered, chunk_rays):
         part = slice(start, min(start + chunk_rays, rendered))
         with _sampling(loaded, settings):
-            outputs = loaded.model(bundle[part])
-        rgb = _pick(outputs, "rgb")
-        if rgb is None:
-            raise RuntimeError(f"{type(loaded.model).__name__} returned no rgb output (keys: {sorted(outputs)})")
-        yield (part if order is None else order[part]), RenderOutput(rgb, _pick(outputs, "accumulation"),
-                                                                     _pick(outputs, "depth"))
+            out = _outputs(loaded.model, bundle[part])
+        yield (part if order is None else order[part]), out
     if order is not None and rendered < len(order):
         missed = order[rendered:]
         count = len(missed)
-        yield missed, RenderOutput(background.expand(count, 3), torch.zeros(count, 1, device=loaded.device),
-                                   torch.full((count, 1), float("inf"), device=loaded.device))
+        yield missed, RenderOutput(background.expand(count, 3), torch.zeros(count, 1, device=loaded.device))
+
+
+def _outputs(model: Model, bundle) -> RenderOutput:
+    """Colour and accumulation of ``bundle`` through ``model.forward``. For nerfacto (whose ``get_outputs`` is
+    nerfacto's own) the same collider, sampler, field and renderers are called in the same order, without the
+    median depth, expected depth and per-proposal depths it renders besides: the same numbers (tested), with
+    fewer operators per chunk."""
+    if (isinstance(model, NerfactoModel) and type(model).get_outputs is NerfactoModel.get_outputs
+            and not model.training and not model.config.predict_normals):
+        if model.collider is not None:
+            bundle = model.collider(bundle)
+        samples, _, _ = model.proposal_sampler(bundle, density_fns=model.density_fns)
+        field = model.field.forward(samples, compute_normals=False)
+        if model.config.use_gradient_scaling:
+            field = scale_gradients_by_distance_squared(field, samples)
+        weights = samples.get_weights(field[FieldHeadNames.DENSITY])
+        return RenderOutput(model.renderer_rgb(rgb=field[FieldHeadNames.RGB], weights=weights),
+                            model.renderer_accumulation(weights=weights))
+    outputs = model(bundle)
+    rgb = _pick(outputs, "rgb")
+    if rgb is None:
+        raise RuntimeError(f"{type(model).__name__} returned no rgb output (keys: {sorted(outputs)})")
+    return RenderOutput(rgb, _pick(outputs, "accumulation"))
 
 
 def _splat_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics,
@@ -278,12 +299,12 @@ def _splat_chunks(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics,
         outputs = loaded.model.get_outputs(pinhole_cameras(c2w[n:n + 1], intrinsics))
         picked = {name: value[rows, cols] for name, value in outputs.items()
                   if isinstance(value, Tensor) and value.ndim == 3}
-        yield slice(n * p, (n + 1) * p), RenderOutput(picked["rgb"], picked.get("accumulation"), picked.get("depth"))
+        yield slice(n * p, (n + 1) * p), RenderOutput(picked["rgb"], picked.get("accumulation"))
 
 
 def render(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor,
            settings: RenderSettings = AS_TRAINED) -> RenderOutput:
-    """Colours (and accumulation and depth where the model has them) of ``pixels`` [P, 2] (row, col) from
+    """Colours (and accumulation where the model has it) of ``pixels`` [P, 2] (row, col) from
     every pose in ``c2w`` [N, 3|4, 4] under ``settings``: ``rgb`` is [N, P, 3]. Differentiable with respect
     to ``c2w``."""
     n, p = as_3x4(c2w).shape[0], pixels.shape[0]
@@ -300,7 +321,7 @@ def render(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Ten
         joined = torch.cat(values)
         return joined[torch.argsort(index)].reshape(n, p, channels)
 
-    return RenderOutput(join("rgb", 3), join("accumulation", 1), join("depth", 1))
+    return RenderOutput(join("rgb", 3), join("accumulation", 1))
 
 
 def render_image(loaded: LoadedModel, c2w_model: np.ndarray, intrinsics: Intrinsics,
@@ -421,9 +442,7 @@ def render_ray_jacobians(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsic
         part.origins = origins[rays].clone().requires_grad_(True)
         part.directions = directions[rays].clone().requires_grad_(True)
         with _sampling(loaded, settings), torch.enable_grad():
-            colour = _pick(loaded.model(part), "rgb")
-            if colour is None:
-                raise RuntimeError(f"{type(loaded.model).__name__} returned no rgb output")
+            colour = _outputs(loaded.model, part).rgb
             for c in range(3):
                 if not colour.requires_grad:  # nothing on these rays depends on the pose
                     break
