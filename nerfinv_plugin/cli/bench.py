@@ -225,8 +225,9 @@ class SpeedBench(ModelBench):
 class PerfBench(SpeedBench):
     """Time one Monte Carlo step on one frame the thesis' way and ours (or how ours scales, or profile it).
 
-    N candidates x P pixels x iterations, one way after the other in this process: time per iteration,
-    rays per second, peak memory and the ratio. With --sweep, time ours over candidate and pixel counts;
+    N candidates x P pixels x iterations in this process, the thesis' loop in two parts with our step timed
+    before, between and after them (the median of those three counts): time per iteration, rays per second,
+    peak memory and the ratio. With --sweep, time ours over candidate and pixel counts;
     with --profile, where our time goes."""
 
     sequence: str
@@ -303,6 +304,9 @@ class PerfBench(SpeedBench):
                          "keypoints every iteration)", compared.thesis), ("nerfinv (ns-invert's step)", compared.ours)):
             console.print(f"| {name} | {t.per_iteration:.3f} | {t.rays_per_second:,.0f} | "
                           f"{t.peak_memory_bytes / MB:,.0f} MB | {float(np.mean(t.first_losses)):.4f} |")
+        runs = ", ".join(f"{t.per_iteration:.3f}" for t in compared.ours_runs)
+        console.print(f"ours, s / iteration, before the thesis' loop and after each of its parts: {runs} (the "
+                      "median in the table)")
         console.print(f"ratio (thesis time per iteration / ours): [bold]{compared.ratio:.2f}x[/bold]")
 
     def latency_config(self) -> InvertConfig:
