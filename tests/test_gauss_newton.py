@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from frozen_depths import frozen_sample_depths
 
 from nerfinv_plugin.data.sequences import read_sequence
 from nerfinv_plugin.geometry.errors import rotation_error_deg
@@ -17,7 +18,7 @@ from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.settings import InvertConfig
 from nerfinv_plugin.inversion.starts import inerf_protocol_starts
 from nerfinv_plugin.inversion.validation import SettingsError, validate
-from nerfinv_plugin.model.render import AS_TRAINED, render, render_ray_jacobians
+from nerfinv_plugin.model.render import RenderSettings, render, render_ray_jacobians
 
 GAUSS_NEWTON = OptimizerConfig(method="gauss-newton")
 
@@ -44,24 +45,32 @@ def _screwed(truth: torch.Tensor, centre: torch.Tensor, xi: torch.Tensor) -> tor
 
 
 def test_the_screw_jacobian_matches_central_differences_of_the_render(toy_held_out, observed):
+    """Against central differences of renders whose sample depths stay where the Jacobian's render put them
+    (nerfacto's sample placement is detached, so the Jacobian treats them as constants): the same function,
+    whatever the fixture learned. With the sampling live, one retraining of the fixture gave cosines of 0.85
+    on 96 pixels and another 0.66 for the first column on 400, with the same code."""
     loaded, intrinsics, truth, centre = toy_held_out
     _, object_pixels = observed
-    # 400 pixels: on 96, one retrained fixture's columns matched with cosines down to 0.85 (0.89 on 400)
     pixels = object_pixels[torch.randperm(len(object_pixels), generator=torch.Generator().manual_seed(0))[:400]]
-    rays = render_ray_jacobians(loaded, truth[None], intrinsics, pixels, AS_TRAINED)
-    analytic = screw_jacobian(rays, centre)[0].reshape(-1, 6)  # [P * 3, 6]
-    step = 2e-3  # radians, and model units (the camera is about 1 unit from the target)
+    # Radians, and model units (the camera is about 1 unit from the target). The hash grids are piecewise
+    # linear: a wider step averages slopes over cells (2e-3 gave a cosine of 0.93 on one column, 1e-4 0.993).
+    step = 1e-4
     xi = torch.zeros(12, 6)
     for i in range(6):
         xi[2 * i, i], xi[2 * i + 1, i] = step, -step
-    with torch.no_grad():
-        colours = render(loaded, _screwed(truth, centre, xi), intrinsics, pixels, AS_TRAINED).rgb.reshape(12, -1)
+    settings = RenderSettings(chunk_rays=len(pixels))  # one chunk: the depths replayed are the whole render's
+    with frozen_sample_depths(loaded.model):
+        rays = render_ray_jacobians(loaded, truth[None], intrinsics, pixels, settings)
+        with torch.no_grad():
+            colours = torch.stack([render(loaded, pose[None], intrinsics, pixels, settings).rgb.reshape(-1)
+                                   for pose in _screwed(truth, centre, xi)])
+    analytic = screw_jacobian(rays, centre)[0].reshape(-1, 6)  # [P * 3, 6]
     numeric = ((colours[0::2] - colours[1::2]) / (2 * step)).T  # [P * 3, 6]
     for i in range(6):
         a, n = analytic[:, i], numeric[:, i]
         cosine = float(a @ n / (a.norm() * n.norm()))
-        assert cosine > 0.85, (i, cosine)
-        assert 0.75 < float(a.norm() / n.norm()) < 1.33, (i, float(a.norm() / n.norm()))
+        assert cosine > 0.98, (i, cosine)
+        assert 0.95 < float(a.norm() / n.norm()) < 1.05, (i, float(a.norm() / n.norm()))
     # the independent check could not pass by accident: another axis's column does not match
     assert float(analytic[:, 0] @ numeric[:, 1] / (analytic[:, 0].norm() * numeric[:, 1].norm())) < 0.9
 

@@ -1,11 +1,11 @@
 """Differentiable batched rendering of a loaded model: gradients, batching, chunking, the no-grad patch."""
 
-import contextlib
 import json
 
 import numpy as np
 import pytest
 import torch
+from frozen_depths import frozen_sample_depths
 from scipy.spatial.transform import Rotation
 
 from nerfinv_plugin.data.images import read_rgb_over_black
@@ -61,32 +61,6 @@ def _perturbed(c2w0: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
     top = torch.cat([rot, delta[:3, None]], 1)
     update = torch.cat([top, torch.tensor([[0.0, 0, 0, 1]], dtype=delta.dtype)], 0)
     return (update @ c2w0)[None]
-
-
-@contextlib.contextmanager
-def frozen_sample_depths(model):
-    """nerfacto places samples with proposal networks whose output is detached: the pose gradient treats
-    the sample depths along each ray as constants. Within this block the depths found on the first
-    render are reused for later renders (new poses move the samples with the rays, as the gradient
-    assumes), so finite differences measure exactly the function that autograd differentiates."""
-    sampler = model.proposal_sampler
-    original = sampler.forward
-    cache = {}
-
-    def replay(ray_bundle, density_fns=None):
-        if "samples" not in cache:
-            cache["samples"] = original(ray_bundle, density_fns=density_fns)
-            return cache["samples"]
-        samples, weights_list, samples_list = cache["samples"]
-        fresh = ray_bundle.get_ray_samples(samples.frustums.starts, samples.frustums.ends, samples.spacing_starts,
-                                           samples.spacing_ends, samples.spacing_to_euclidean_fn)
-        return fresh, weights_list, samples_list
-
-    sampler.forward = replay
-    try:
-        yield
-    finally:
-        del sampler.forward
 
 
 def test_pose_gradient_matches_finite_differences(toy):
