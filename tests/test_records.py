@@ -78,8 +78,8 @@ def test_what_the_run_folder_writes_reads_back_equal_in_the_files_format(tmp_pat
     assert (tmp_path / STEPS_JSONL).read_text().splitlines()[0] == json.dumps(STEP_JSON)
     assert (tmp_path / SUMMARY).read_text() == json.dumps(SUMMARY_JSON, indent=2)
     csv_lines = (tmp_path / RESULTS_CSV).read_text().splitlines()
-    assert csv_lines[1] == "0,img000004.jpg,2,1.5,4.25,0.0123,2.5,0.05,0.01,0.0536,9,1,True,True,3,0.5,0.5,-0.5,0.5," \
-                           "0.1,-0.2,5.0"
+    assert csv_lines[1] == "0,img000004.jpg,2,1.5,4.25,0.0123,2.5,0.05,0.01,0.0536,9,1,True,True,3," \
+                           "False,15.0,18.5,3.5,0.5,0.5,-0.5,0.5,0.1,-0.2,5.0"
     assert csv_lines[2].startswith("3,img000004.jpg,2,1.5,4.25,0.0123,,,,,9,")
 
 
