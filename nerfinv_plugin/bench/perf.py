@@ -168,19 +168,11 @@ class ThesisLoop:
                       self.losses[0].cpu().numpy())
 
 
-def thesis_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsics: Intrinsics, pixels: int,
-                iterations: int, lr: float = 0.01, seed: int = 0) -> Timing:
-    """The thesis' implementation, ``iterations`` iterations in one go."""
-    loop = ThesisLoop(loaded, start, image, intrinsics, pixels, lr, seed)
-    loop.run(iterations)
-    return loop.timing()
-
-
 def our_loop(loaded: LoadedModel, start: Tensor, image: np.ndarray, intrinsics: Intrinsics, pixels: int,
              centre: Tensor, config: OptimizerConfig, seed: int = 0, settings: RenderSettings = AS_TRAINED) -> Timing:
     """One Monte Carlo step of our engine, rendering under ``settings``: keypoints once, all candidates
     batched, frozen weights. The
-    iterations' pixels come from a generator seeded as :func:`thesis_loop`'s (the ranking pixels from
+    iterations' pixels come from a generator seeded as :class:`ThesisLoop`'s (the ranking pixels from
     another), so both loops draw the same pixels."""
     sampler = PixelSampler("interest_region", pixels).prepare(image)
     eval_pixels = torch.as_tensor(PixelSampler("random", 1024).prepare(image).sample(np.random.default_rng(seed + 1)))

@@ -18,7 +18,7 @@ constexpr uint32_t kPrimeY = 2654435761u;
 constexpr uint32_t kPrimeZ = 805459861u;
 
 struct Level {
-  float weight[3][2]; // [axis][floor corner, ceil corner]
+  float frac[3];  // per axis: the position's offset from the floor corner, in cells (the ceil corner's weight)
   uint32_t hash[3][2];
 };
 
@@ -28,8 +28,7 @@ inline Level locate(const float* p, float scaling) {
     const float x = p[a] * scaling;
     const float lower = std::floor(x);
     const float frac = x - lower;
-    c.weight[a][0] = 1.0f - frac;
-    c.weight[a][1] = frac;
+    c.frac[a] = frac;
     // nerfstudio takes the ceil, not floor + 1: on an exact grid point both corners are the same cell.
     const uint32_t ends[2] = {static_cast<uint32_t>(static_cast<int32_t>(lower)),
                               static_cast<uint32_t>(static_cast<int32_t>(std::ceil(x)))};
@@ -86,7 +85,7 @@ inline void encode_level(const Grid& grid, const float* p, int64_t l, int64_t f_
   const int64_t f = FIXED_F > 0 ? FIXED_F : f_runtime;
   const Level c = locate(p, grid.scl[l]);
   const float s = grid.scl[l];  // d frac / d position
-  const float fx = c.weight[0][1], fy = c.weight[1][1], fz = c.weight[2][1];
+  const float fx = c.frac[0], fy = c.frac[1], fz = c.frac[2];
   const float* v[2][2][2];  // [z][y][x] corner rows
   for (int z = 0; z < 2; ++z)
     for (int y = 0; y < 2; ++y)
