@@ -127,7 +127,7 @@ def test_object_radius_is_not_inflated_by_a_fog_of_specks_touching_the_object(to
         return field.density_fn(points) + (1.3 * threshold * speck).reshape(*points.shape[:-1], 1)
 
     monkeypatch.setattr(extent, "density_field", lambda loaded: SimpleNamespace(density_fn=foggy))
-    at_threshold = extent._radius_at(toy_model, centre, scene, threshold)
+    at_threshold = extent._radius_at(lambda half: extent.DensityGrid.measure(toy_model, centre, half), scene, threshold)
     assert at_threshold > 1.4 * clean / extent.MARGIN, (at_threshold, clean)  # the fog joined the object
     assert abs(object_radius(toy_model, centre) - clean) < 0.1 * clean, clean
 

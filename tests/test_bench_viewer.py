@@ -1,7 +1,11 @@
 """``ns-invert-bench viewer``: a real pair of toy inversions, without and with the viewer while the headless
 Chromium watches, and the command's refusals (a missing browser before any run, bad options)."""
 
+import os
+import signal
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -27,6 +31,44 @@ def test_a_pair_is_measured_with_the_browser_connected_and_drawing(toy_run, tmp_
     assert pair.wall_off_s > 0 and pair.wall_on_s > 0 and pair.cpu_off_s > 0 and pair.cpu_on_s > 0, pair
     assert pair.browser_cpu_s > 0, pair  # chromedriver alone idles: this is the browser's own processes
     assert measured.medians(wall=True) == (pair.wall_off_s, pair.wall_on_s)
+
+
+def test_idle_priority_reaches_every_thread_of_the_tree_and_what_it_starts_later(tmp_path):
+    """``--browser-priority idle`` must reach chromium's renderer and GPU processes, which chromedriver starts
+    through chromium, and each of their threads (Linux schedules threads, not processes): here a process
+    whose child runs a second thread, then starts a grandchild once the change is made."""
+    go = tmp_path / "go"
+    inner = ("import os, subprocess, sys, threading, time\n"
+             "threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n"
+             f"while not os.path.exists({str(go)!r}): time.sleep(0.02)\n"
+             "subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(30)']); time.sleep(30)")
+    outer = subprocess.Popen([sys.executable, "-c",
+                              f"import subprocess, sys; subprocess.run([sys.executable, '-c', {inner!r}])"])
+
+    def tree() -> set[int]:
+        return overhead_module._tree(outer.pid, overhead_module._process_stats())
+
+    def wait_for(processes: int) -> None:
+        deadline = time.monotonic() + 20
+        while len(tree()) < processes:
+            assert time.monotonic() < deadline, f"the process tree did not reach {processes} processes"
+            time.sleep(0.02)
+
+    try:
+        wait_for(2)
+        time.sleep(0.5)  # the child's second thread
+        assert overhead_module.idle_tree(outer.pid) >= 3
+        go.touch()
+        wait_for(3)
+        threads = [int(t.name) for pid in tree() for t in Path(f"/proc/{pid}/task").iterdir()]
+        assert len(threads) >= 4, threads
+        assert all(os.sched_getscheduler(tid) == os.SCHED_IDLE for tid in threads), threads
+        assert os.sched_getscheduler(0) != os.SCHED_IDLE  # not the caller
+    finally:
+        for pid in tree() - {outer.pid}:
+            os.kill(pid, signal.SIGKILL)
+        outer.kill()
+        outer.wait()
 
 
 def test_medians_are_taken_per_column():

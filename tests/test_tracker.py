@@ -247,6 +247,31 @@ def test_adams_translation_steps_are_in_units_of_the_length_given(toy_sequence, 
     assert torch.allclose(screw[:, 3:].abs(), torch.full((2, 3), 0.01 * length), rtol=0.02), screw
 
 
+def test_averaging_ends_the_step_at_the_moving_average_of_the_iterates(toy_sequence):
+    """With ``averaging`` the path is Adam's own (the same pixels, losses and iterates), and the step's
+    final poses are the exponential moving average of the iterates' screw coordinates, computed here by
+    hand from the iterates of the same step without averaging."""
+    loaded, frames, centre = toy_sequence
+    frame = frames[0]
+    start = _starts(frame.c2w_true, centre, 3, loaded.dataparser_scale, seed=3)
+    sampler = PixelSampler("random", 64).prepare(frame.image)
+    eval_pixels = torch.as_tensor(PixelSampler("random", 64).prepare(frame.image).sample(np.random.default_rng(0)))
+    prepared = PreparedFrame.from_image(loaded, frame.image, frame.intrinsics, sampler, eval_pixels, centre)
+    plain = optimize_candidates(loaded, start, prepared, OptimizerConfig(iterations=4), np.random.default_rng(1))
+    averaged = optimize_candidates(loaded, start, prepared, OptimizerConfig(iterations=4, averaging=0.5),
+                                   np.random.default_rng(1))
+    for a, b in zip(plain.history, averaged.history):
+        assert np.array_equal(a.loss, b.loss) and np.array_equal(a.c2w, b.c2w)
+    to_centre, from_centre = centred(centre)
+    iterates = [torch.as_tensor(r.c2w) for r in plain.history[1:]] + [plain.c2w]  # after each iteration
+    mean = torch.zeros(3, 6)
+    for pose in iterates:
+        mean = 0.5 * mean + 0.5 * log_se3((from_centre @ pose @ torch.linalg.inv(start) @ to_centre).double()).float()
+    expected = to_centre @ exp_se3(mean) @ from_centre @ start
+    assert torch.allclose(averaged.c2w, expected, atol=1e-5), (averaged.c2w - expected).abs().max()
+    assert not torch.allclose(averaged.c2w, plain.c2w, atol=1e-4)  # it is not the last iterate
+
+
 def test_pruning_stops_far_candidates_and_patience_ends_a_step_early(toy_sequence):
     loaded, frames, centre = toy_sequence
     frame = frames[0]

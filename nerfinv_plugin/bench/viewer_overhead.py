@@ -4,7 +4,13 @@ change in the machine's load falls on both. Each pair records the runs' inversio
 ``wall_time_s``: model loading and the report are not counted), the CPU time of this process over the whole
 ``invert`` call (all its threads, viser's among them; loading and the report are the same in both, so the
 difference is the viewer's own work, which a busy machine's load does not blur), and the CPU time the
-browser's processes took meanwhile (software WebGL on the same cores)."""
+browser's processes took meanwhile (software WebGL on the same cores).
+
+A browser on the user's own machine, or drawing with a GPU, takes nothing from the run; here it draws
+viser's canvas in software on the run's two cores, which measures the browser rather than the viewer
+(docs/benchmarks.md: 3.7x). ``browser_priority="idle"`` puts every thread of the browser's processes under
+Linux's ``SCHED_IDLE`` once it is connected: it runs only on the time the inversion leaves, which stands in
+for a browser elsewhere while it still holds the real websocket and receives every message the viewer sends."""
 
 import io
 import os
@@ -14,6 +20,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from rich.console import Console
 
@@ -29,8 +36,12 @@ CONNECT_S = 60.0
 """How long the browser may take to open the viewer's websocket."""
 
 
-def tree_cpu_s(root: int) -> float:
-    """CPU seconds (user + system) of every live process under ``root`` (Linux ``/proc``)."""
+BrowserPriority = Literal["normal", "idle"]
+"""normal: the browser competes with the run for the cores; idle: it runs only when the cores are idle."""
+
+
+def _process_stats() -> dict[int, tuple[int, float]]:
+    """Every live process: its parent and its CPU seconds (user + system), from Linux ``/proc``."""
     stats = {}
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
@@ -39,10 +50,39 @@ def tree_cpu_s(root: int) -> float:
             except OSError:  # the process ended meanwhile
                 continue
             stats[int(entry.name)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"))
+    return stats
+
+
+def _tree(root: int, stats: dict[int, tuple[int, float]]) -> set[int]:
+    """``root`` and every live process under it."""
     under = {root}
     for _ in range(8):  # chromedriver -> chromium -> its zygote, renderer and GPU processes
         under |= {pid for pid, (parent, _) in stats.items() if parent in under}
-    return sum(stats.get(pid, (0, 0.0))[1] for pid in under)
+    return under
+
+
+def tree_cpu_s(root: int) -> float:
+    """CPU seconds (user + system) of every live process under ``root``."""
+    stats = _process_stats()
+    return sum(stats.get(pid, (0, 0.0))[1] for pid in _tree(root, stats))
+
+
+def idle_tree(root: int) -> int:
+    """Put every thread of every process under ``root`` under ``SCHED_IDLE`` (threads and processes they start
+    later inherit it); returns how many threads were changed. A thread that ended meanwhile is skipped."""
+    changed = 0
+    for pid in _tree(root, _process_stats()):
+        try:
+            threads = [int(t.name) for t in Path(f"/proc/{pid}/task").iterdir()]
+        except OSError:
+            continue
+        for tid in threads:
+            try:
+                os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+                changed += 1
+            except (ProcessLookupError, PermissionError):
+                continue
+    return changed
 
 
 @dataclass(frozen=True)
@@ -89,10 +129,12 @@ def overhead_config(load_config: Path, sequence: str, target: tuple[float, float
 
 def viewer_overhead(load_config: Path, sequence: str, target: tuple[float, float, float], stop: int,
                     iterations: int, repeats: int,
-                    on_pair: Callable[[OverheadPair], None] = lambda pair: None) -> ViewerOverhead:
-    """Run ``repeats`` pairs (without, then with the viewer and one browser), in a temporary folder that is
-    removed afterwards; ``on_pair`` hears each pair as it finishes. Raises :class:`BrowserError` when no
-    browser can be started (before the first run) or it is not connected for the whole viewed run."""
+                    on_pair: Callable[[OverheadPair], None] = lambda pair: None,
+                    browser_priority: BrowserPriority = "normal") -> ViewerOverhead:
+    """Run ``repeats`` pairs (without, then with the viewer and one browser at ``browser_priority``), in a
+    temporary folder that is removed afterwards; ``on_pair`` hears each pair as it finishes. Raises
+    :class:`BrowserError` when no browser can be started (before the first run) or it is not connected for the
+    whole viewed run."""
     find_chromium()
     quiet = Console(file=io.StringIO())
     pairs = []
@@ -112,6 +154,8 @@ def viewer_overhead(load_config: Path, sequence: str, target: tuple[float, float
                             raise BrowserError(f"chromium did not open the viewer's websocket in {CONNECT_S:g} s")
                         time.sleep(0.1)
                     pid = browser.service.process.pid
+                    if browser_priority == "idle" and not idle_tree(pid):
+                        raise BrowserError("could not put the browser's threads under SCHED_IDLE")
                     tic, browser_tic = time.process_time(), tree_cpu_s(pid)
                     on = invert(overhead_config(load_config, sequence, target, stop, iterations, out, f"on-{repeat}"),
                                 quiet, LiveViewer(server, render=False))

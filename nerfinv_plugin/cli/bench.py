@@ -46,7 +46,7 @@ from nerfinv_plugin.bench.sampling import Sampling
 from nerfinv_plugin.bench.scoring import SUCCESS_DEG, aggregate, under_key
 from nerfinv_plugin.bench.screw import screw_runs, summarize
 from nerfinv_plugin.bench.tables import TABLE_MD
-from nerfinv_plugin.bench.viewer_overhead import OverheadPair, viewer_overhead
+from nerfinv_plugin.bench.viewer_overhead import BrowserPriority, OverheadPair, viewer_overhead
 from nerfinv_plugin.cli import Interrupted, run
 from nerfinv_plugin.data.sequences import SequenceError
 from nerfinv_plugin.initialization.bank import BankConfig
@@ -520,6 +520,10 @@ class ViewerBench:
     """Pairs of runs (without, with the viewer)."""
     iterations: int = 30
     """Iterations per Monte Carlo step."""
+    browser_priority: BrowserPriority = "normal"
+    """normal: the browser shares the cores with the run as any program does (here it draws viser's canvas in
+    software, which takes about a core); idle: once connected it runs only on time the run leaves (Linux
+    SCHED_IDLE), standing in for a browser on another machine or a GPU."""
 
     def main(self) -> None:
         check(self, VIEWER_RULES)
@@ -536,7 +540,7 @@ class ViewerBench:
         try:
             with console.status("runs without and with the viewer"):
                 measured = viewer_overhead(self.load_config, self.sequence, self.target, self.stop, self.iterations,
-                                           self.repeats, on_pair)
+                                           self.repeats, on_pair, self.browser_priority)
         except KeyboardInterrupt:
             raise Interrupted("interrupted; the pairs printed above are finished") from None
         for name, wall in (("inversion wall time", True), ("process CPU time", False)):

@@ -19,6 +19,9 @@ when the threshold doubles, while a chance-connected cloud of specks falls apart
 until the radius holds (docs/method.md).
 """
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 from scipy import ndimage
@@ -51,26 +54,42 @@ def density_field(loaded: LoadedModel):
                          "--render.target-radius-m METRES")
 
 
-def _occupied_radius(loaded: LoadedModel, centre: Tensor, half: float, min_density: float) -> float | None:
-    """Radius of the cells at least ``min_density`` dense connected to the centre, on a grid of half-side
-    ``half`` about it; ``None`` when no cell is occupied."""
-    field = density_field(loaded)
-    axis = torch.linspace(-half, half, GRID, device=loaded.device)
-    cell = float(axis[1] - axis[0])
-    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + centre.to(axis)
-    with torch.no_grad():
-        density = torch.cat([field.density_fn(part).reshape(-1) for part in grid.split(1 << 16)])
-    if not bool(torch.isfinite(density).all()):
-        raise ModelLoadError(f"{type(loaded.model).__name__} gives non-finite densities on a grid: give the object's "
-                             "size with --render.target-radius-m METRES")
-    occupied = (density >= min_density).reshape(GRID, GRID, GRID).cpu().numpy()
-    if not occupied.any():
-        return None
-    labels, _ = ndimage.label(occupied, TOUCHING)
-    offsets = (grid - centre.to(axis)).reshape(GRID, GRID, GRID, 3).cpu().numpy()
-    distance = np.linalg.norm(offsets, axis=-1)
-    nearest = labels[occupied][np.argmin(distance[occupied])]
-    return float(distance[labels == nearest].max()) + 0.5 * np.sqrt(3.0) * cell
+@dataclass(frozen=True)
+class DensityGrid:
+    """The model's density on a grid about the centre, to be thresholded (once per threshold tried)."""
+
+    density: np.ndarray
+    """[GRID, GRID, GRID] density at the cell centres."""
+    distance: np.ndarray
+    """[GRID, GRID, GRID] distance of each cell centre from the centre (model units)."""
+    cell: float
+    """Side of a cell (model units)."""
+
+    @classmethod
+    def measure(cls, loaded: LoadedModel, centre: Tensor, half: float) -> "DensityGrid":
+        """The grid of half-side ``half`` about ``centre`` [3]."""
+        field = density_field(loaded)
+        axis = torch.linspace(-half, half, GRID, device=loaded.device)
+        offsets = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+        with torch.no_grad():
+            points = offsets + centre.to(axis)
+            density = torch.cat([field.density_fn(part).reshape(-1) for part in points.split(1 << 16)])
+        if not bool(torch.isfinite(density).all()):
+            raise ModelLoadError(f"{type(loaded.model).__name__} gives non-finite densities on a grid: give the "
+                                 "object's size with --render.target-radius-m METRES")
+        shape = (GRID, GRID, GRID)
+        distance = np.linalg.norm((points - centre.to(axis)).reshape(*shape, 3).cpu().numpy(), axis=-1)
+        return cls(density.reshape(shape).cpu().numpy(), distance, float(axis[1] - axis[0]))
+
+    def occupied_radius(self, min_density: float) -> float | None:
+        """Radius of the cells at least ``min_density`` dense connected to the centre; ``None`` when no cell
+        is occupied."""
+        occupied = self.density >= min_density
+        if not occupied.any():
+            return None
+        labels, _ = ndimage.label(occupied, TOUCHING)
+        nearest = labels[occupied][np.argmin(self.distance[occupied])]
+        return float(self.distance[labels == nearest].max()) + 0.5 * np.sqrt(3.0) * self.cell
 
 
 def object_radius(loaded: LoadedModel, centre: Tensor) -> float:
@@ -79,12 +98,19 @@ def object_radius(loaded: LoadedModel, centre: Tensor) -> float:
     aabb = getattr(loaded.model, "scene_box", None)
     extent = float(aabb.aabb.abs().max()) if aabb is not None else 1.0
     min_density = base_density(extent)
-    radius = _radius_at(loaded, centre, extent, min_density)
+    grids: dict[float, DensityGrid] = {}  # by half-side: the coarse pass is the same at every threshold
+
+    def grid(half: float) -> DensityGrid:
+        if half not in grids:
+            grids[half] = DensityGrid.measure(loaded, centre, half)
+        return grids[half]
+
+    radius = _radius_at(grid, extent, min_density)
     if radius is None:
         raise ModelLoadError(f"the model's density is empty within {extent:.3g} model units of the target: is "
                              "--target the object's centre, and did the model learn it? (ns-invert-psnr scores it)")
     for doubling in range(1, DOUBLINGS + 1):
-        denser = _radius_at(loaded, centre, extent, min_density * 2**doubling)
+        denser = _radius_at(grid, extent, min_density * 2**doubling)
         if denser is None or radius <= STABLE * denser:
             break
         radius = denser
@@ -105,11 +131,12 @@ def base_density(extent: float) -> float:
     return float(-np.log(1.0 - OPACITY) / (2.0 * extent / (GRID - 1)))
 
 
-def _radius_at(loaded: LoadedModel, centre: Tensor, extent: float, min_density: float) -> float | None:
-    """The occupied radius at ``min_density``: a coarse pass over the scene box, then a fine one about what it
-    found; ``None`` when nothing is that dense."""
-    coarse = _occupied_radius(loaded, centre, extent, min_density)
+def _radius_at(grid: Callable[[float], DensityGrid], extent: float, min_density: float) -> float | None:
+    """The occupied radius at ``min_density``: a coarse pass over the scene box (half-side ``extent``), then a
+    fine one about what it found (``grid(half)`` gives the density grid of that half-side); ``None`` when
+    nothing is that dense."""
+    coarse = grid(extent).occupied_radius(min_density)
     if coarse is None:
         return None
-    fine = _occupied_radius(loaded, centre, min(1.25 * coarse, extent), min_density)
+    fine = grid(min(1.25 * coarse, extent)).occupied_radius(min_density)
     return fine if fine is not None else coarse

@@ -45,10 +45,13 @@ class Initializer:
 
     @classmethod
     def create(cls, loaded: LoadedModel, settings: RenderSettings, centre: np.ndarray, config: BankConfig,
-               on_build: Callable[[int], Callable[[int], None]] | None = None) -> "Initializer":
-        """The bank about ``centre`` (model frame) rendered under ``settings``, framing the sphere they bound
-        rays to, or the object's extent read off the model when they do not bound them."""
-        radius = framed_radius(loaded, torch.as_tensor(centre, dtype=torch.float32), settings)
+               on_build: Callable[[int], Callable[[int], None]] | None = None,
+               radius: float | None = None) -> "Initializer":
+        """The bank about ``centre`` (model frame) rendered under ``settings``, framing ``radius`` (model
+        units; unset: the sphere ``settings`` bound rays to, or the object's extent read off the model when
+        they do not bound them, which measures the density grid)."""
+        if radius is None:
+            radius = framed_radius(loaded, torch.as_tensor(centre, dtype=torch.float32), settings)
         bank, path, built = cached_bank(loaded, settings, centre, radius, config, on_build)
         entries = bank_entries(bank, config)
         if not entries.views:

@@ -57,6 +57,11 @@ class OptimizerConfig:
     lr_decay: float = 0.8
     """Multiplies the learning rate every ``lr_decay_iterations`` iterations, smoothly (iNeRF's 0.8)."""
     lr_decay_iterations: int = 20
+    averaging: float = 0.0
+    """Adam: the step ends at an exponential moving average of each candidate's iterates (its screw
+    coordinates) with this weight on the past, instead of at its last iterate (Polyak averaging; 0.9 averages
+    about the last 10 iterations). Adam on fresh pixels each iteration jitters about the minimum and walks along
+    flat directions; the average keeps the jitter out of the estimate. 0: off (the thesis)."""
     loss: LossName = "mse"
     """Photometric loss: mse (thesis), mape (Parallel Inversion) or huber."""
     colour_weight: float = 1.0
@@ -220,6 +225,8 @@ class CandidateStep:
         self.start = start.to(device, torch.float32)
         n = self.start.shape[0]
         self.theta = torch.zeros(n, 6, device=device, requires_grad=True)
+        self.average = torch.zeros(n, 6, device=device)
+        """Exponential moving average of ``theta`` over the iterations (``config.averaging``)."""
         self.units = torch.tensor([1.0, 1.0, 1.0, length, length, length], device=device)
         """What one unit of each screw coordinate is: radians, then ``length`` model units."""
         if config.screw_origin == "target":
@@ -238,9 +245,11 @@ class CandidateStep:
         """No candidate is left, or patience ran out: the step ends before its last iteration."""
         self._best_seen, self._stalled = float("inf"), 0
 
-    def poses(self) -> Tensor:
-        """Current candidates [N, 4, 4]: ``C exp([S] theta) C^-1 T0``."""
-        return self.to_centre @ exp_se3(self.theta * self.units) @ self.from_centre @ self.start
+    def poses(self, theta: Tensor | None = None) -> Tensor:
+        """Candidates [N, 4, 4] at screw coordinates ``theta`` (unset: the current ones): ``C exp([S] theta) C^-1
+        T0``."""
+        theta = self.theta if theta is None else theta
+        return self.to_centre @ exp_se3(theta * self.units) @ self.from_centre @ self.start
 
     def iterate(self, rng: np.random.Generator) -> IterationRecord:
         """One iteration on fresh pixels drawn with ``rng``: render the active candidates, take an Adam
@@ -266,6 +275,9 @@ class CandidateStep:
         c2w.backward(torch.where(active[:, None, None], grad, 0.0))
         self.optimizer.step()
         self.scheduler.step()
+        with torch.no_grad():
+            weight = torch.where(active, config.averaging, 1.0)[:, None]  # a pruned candidate's average stays
+            self.average.mul_(weight).add_((1.0 - weight) * self.theta.detach())
         losses = torch.where(active, losses, torch.inf)
         error = None if self.frame.error_fn is None else self.frame.error_fn(c2w.detach()).cpu().numpy()
         record = IterationRecord(losses.cpu().numpy(), error, c2w.detach().cpu().numpy())
@@ -288,9 +300,10 @@ class CandidateStep:
             self.stopped = True
 
     def result(self) -> StepResult:
-        """The final poses ranked on the frame's evaluation pixels."""
-        return rank(self.loaded, self.poses().detach(), self.alive, self.active, self.frame, self.config,
-                    self.settings, self.history)
+        """The final poses (the averaged iterates with ``config.averaging``) ranked on the frame's evaluation
+        pixels."""
+        final = self.poses(self.average if self.config.averaging > 0 else None).detach()
+        return rank(self.loaded, final, self.alive, self.active, self.frame, self.config, self.settings, self.history)
 
 
 def rank(loaded: LoadedModel, final: Tensor, alive: Tensor, active: Tensor, frame: PreparedFrame,

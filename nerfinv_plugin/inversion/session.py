@@ -193,12 +193,15 @@ class Inversion:
         settings, radius = bound_rays(loaded, centre, c.render)
         if radius is not None:
             self.events.info(f"object radius {radius:.3g} m, read off the model's density (rays are bounded to it)")
+        framing = None  # read once (unbounded rays measure the density grid): the bank frames it, Adam steps in it
+        if c.starts.source == "bank" or c.optimizer.translation_unit == "object":
+            framing = framed_radius(loaded, centre, settings)
         initializer = None
         if c.starts.source == "bank":
-            initializer = self._initializer(loaded, centre, settings)
+            initializer = self._initializer(loaded, centre, settings, framing)
         start = self._starts(loaded, sequence, centre, detections, initializer)
         setup_s = time.perf_counter() - setup
-        size = framed_radius(loaded, centre, settings) if c.optimizer.translation_unit == "object" else None
+        size = framing if c.optimizer.translation_unit == "object" else None
         tracker = Tracker(loaded, centre, c.optimizer, c.monte_carlo, c.sampling, c.pixels, c.eval_pixels,
                           c.seed, rotation_error_deg, settings, c.sample_region, c.rank_region, size)
         self.folder.path.mkdir(parents=True, exist_ok=True)
@@ -283,10 +286,11 @@ class Inversion:
             raise InversionError(f"--masks: {err}") from err
         return _timed_each(detection_from_mask, masks)
 
-    def _initializer(self, loaded: LoadedModel, centre: Tensor, settings: RenderSettings) -> Initializer:
-        """The view bank, from the cache or rendered now."""
+    def _initializer(self, loaded: LoadedModel, centre: Tensor, settings: RenderSettings,
+                     radius: float) -> Initializer:
+        """The view bank framing ``radius`` (model units), from the cache or rendered now."""
         initializer = Initializer.create(loaded, settings, centre.numpy().astype(np.float64), self.config.bank,
-                                         self.events.bank)
+                                         self.events.bank, radius)
         how = f"rendered in {initializer.build_s:.1f} s" if initializer.built else "read from the cache"
         self.events.info(f"view bank: {self.config.bank.views} views x {self.config.bank.in_plane} in-plane angles, "
                          f"{how} ({initializer.cache})")
@@ -297,8 +301,9 @@ class Inversion:
         """Before a frame's first step, ask the bank about it. When the best candidate no longer puts the
         object where the frame shows it (lost), all of ``reinit_count`` hypotheses join the candidates;
         otherwise the best ``watch_count`` that are more than ``watch_deg`` from every candidate do (a
-        wrong mode of a near-symmetric object keeps the silhouette, so only another attitude tells).
-        Returns (lost, hypotheses added)."""
+        wrong mode of a near-symmetric object keeps the silhouette, so only another attitude tells), unless
+        the frame cuts the object: the bank matches whole silhouettes and sets the range from the box, so on a
+        cut one its hypotheses are wrong in range and attitude alike. Returns (lost, hypotheses added)."""
         c = self.config
         if c.lost_iou > 0:
             iou = silhouette_iou(loaded, settings, state.candidates[0], frame.intrinsics, detection.mask)
@@ -308,7 +313,7 @@ class Inversion:
                 self.events.warn(f"frame {frame.name}: the object is not where the estimate puts it (silhouette "
                                  f"IoU {iou:.2f}); {len(found)} bank hypotheses join the candidates")
                 return True, len(found)
-        if c.watch_count == 0:
+        if c.watch_count == 0 or detection.touches_border:
             return False, 0
         found = initializer.poses(frame.image, detection, frame.intrinsics, c.watch_count)
         apart = attitude_deg(found, state.candidates).min(1).values > c.watch_deg

@@ -140,6 +140,7 @@ INVERT_RULES: dict[str, Rule] = {
     "optimizer.silhouette-band-px": whole(1),
     "optimizer.lr-decay": number(above=0, at_most=1),
     "optimizer.lr-decay-iterations": whole(1),
+    "optimizer.averaging": number(at_least=0, below=1),  # 1 would never leave the start
     "optimizer.patience": whole(1),
     "optimizer.min-improvement": number(at_least=0, below=1),  # 1 would ask for a loss of 0
     "optimizer.prune-every": whole(1),
