@@ -1,6 +1,7 @@
 """``ns-invert`` with no option that needs the truth: it tracks from the view bank, never reads the labels,
 goes on through a frame without the object, and refuses a mask folder that does not fit."""
 
+import dataclasses
 import json
 import shutil
 import sys
@@ -164,3 +165,25 @@ def test_the_bank_watch_takes_a_tracker_off_a_wrong_mode(toy_run, shirt, tmp_pat
         assert errors[-2:].max() < 10.0 and sum(added) > 0, (errors, added)
     else:
         assert errors[-2:].min() > 30.0 and sum(added) == 0, (errors, added)
+
+
+def test_the_bank_watch_skips_frames_that_cut_the_object(toy_run, shirt, tmp_path, monkeypatch):
+    """The same wrong start and watch as above, with every frame's object marked as touching the border: the
+    bank's hypotheses of a cut silhouette are not trusted, so none joins and the tracker stays off."""
+    def wrong_start(self, loaded, sequence, centre, detections, initializer):
+        truth = loaded.dataset_to_model(sequence.frames[0].c2w_true)
+        return torch.as_tensor(_flipped_start(truth, centre.numpy())[None], dtype=torch.float32)
+
+    found = Inversion._detections
+
+    def cut(self, sequence):
+        detections, seconds = found(self, sequence)
+        return [dataclasses.replace(d, touches_border=True) for d in detections], seconds
+
+    monkeypatch.setattr(Inversion, "_starts", wrong_start)
+    monkeypatch.setattr(Inversion, "_detections", cut)
+    config = _quick(toy_run, shirt / "roe1", tmp_path, lost_iou=0.0, watch_count=2,
+                    optimizer=OptimizerConfig(iterations=30))
+    rows = RunFolder(Path(Inversion.create(config).run().run)).rows()
+    errors = np.array([r.rotation_deg for r in rows])
+    assert errors[-2:].min() > 30.0 and sum(r.bank_added for r in rows) == 0, errors

@@ -66,11 +66,11 @@ class Initializer:
                                            self.config))
 
 
-def silhouette_iou(loaded: LoadedModel, settings: RenderSettings, c2w: Tensor, intrinsics: Intrinsics,
-                   mask: np.ndarray) -> float:
-    """Overlap of the model's silhouette (accumulation over one half, rendered under ``settings``) at pose
-    ``c2w`` [4, 4] with the
-    observed ``mask`` [H, W], on a grid of at most :data:`SILHOUETTE_RAYS` pixels."""
+def rendered_silhouette(loaded: LoadedModel, settings: RenderSettings, c2w: Tensor,
+                        intrinsics: Intrinsics) -> np.ndarray:
+    """The model's opacity [h, w] (accumulation, or the brightest channel for a model without one) at pose
+    ``c2w`` [4, 4], rendered under ``settings`` on a grid of at most :data:`SILHOUETTE_RAYS` pixels that
+    covers the frame of ``intrinsics``."""
     factor = max(1, int(np.ceil(np.sqrt(intrinsics.width * intrinsics.height / SILHOUETTE_RAYS))))
     width, height = max(1, intrinsics.width // factor), max(1, intrinsics.height // factor)
     small = intrinsics.scaled(width, height)
@@ -79,7 +79,14 @@ def silhouette_iou(loaded: LoadedModel, settings: RenderSettings, c2w: Tensor, i
     with torch.no_grad():
         out = render(loaded, c2w[None].to(torch.float32), small, pixels, settings)
     opacity = out.accumulation if out.accumulation is not None else out.rgb.amax(-1, keepdim=True)
-    rendered = opacity.reshape(height, width).cpu().numpy() >= 0.5
+    return opacity.reshape(height, width).cpu().numpy()
+
+
+def silhouette_iou(opacity: np.ndarray, mask: np.ndarray) -> float:
+    """Overlap of a rendered silhouette (``opacity`` [h, w] over one half, :func:`rendered_silhouette`) with
+    the observed ``mask`` [H, W] brought to its grid."""
+    height, width = opacity.shape
+    rendered = opacity >= 0.5
     observed = cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) >= 0.5
     union = np.logical_or(rendered, observed).sum()
     return float(np.logical_and(rendered, observed).sum() / union) if union else 0.0

@@ -29,10 +29,11 @@ from nerfinv_plugin.geometry.frames import c2w_opencv_to_label, label_to_c2w_ope
 from nerfinv_plugin.geometry.se3 import geodesic_deg
 from nerfinv_plugin.initialization.detect import Detection, MaskError, detection_from_mask, find_object, read_masks
 from nerfinv_plugin.initialization.extent import framed_radius, object_radius
-from nerfinv_plugin.initialization.initializer import Initializer, silhouette_iou
+from nerfinv_plugin.initialization.initializer import Initializer, rendered_silhouette, silhouette_iou
 from nerfinv_plugin.inversion import starts
 from nerfinv_plugin.inversion.clock import Clock, fraction_between, interpolated_pose
 from nerfinv_plugin.inversion.optimizer import IterationRecord, StepResult, iterations_per_step
+from nerfinv_plugin.inversion.reanchor import reanchor, silhouette_anchor
 from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, read_config, write_config
 from nerfinv_plugin.inversion.tracker import Frame, StepRecord, Tracker, TrackerState
 from nerfinv_plugin.model.loaded import LoadedModel
@@ -234,9 +235,18 @@ class Inversion:
                 estimate = state.last_estimate if state.last_estimate is not None else start[0]
                 record = StepRecord(k, estimate, state.last_loss, 0, StepResult(estimate[None], torch.zeros(1)))
             else:
-                if within == 0 and k > 0 and initializer is not None:
-                    reinitialized, watched = self._ask_bank(loaded, settings, initializer, state, frames[k],
-                                                            detection)
+                if within == 0 and k > 0:
+                    if initializer is not None:
+                        opacity = None if c.lost_iou == 0 else rendered_silhouette(
+                            loaded, settings, state.candidates[0], frames[k].intrinsics)
+                        reinitialized, watched = self._ask_bank(initializer, state, frames[k], detection, opacity)
+                    if c.reanchor and not detection.touches_border:
+                        anchor = silhouette_anchor(loaded, settings, state.candidates[0], detection,
+                                                   frames[k].intrinsics, centre)
+                        if anchor is not None:
+                            carried = state.candidates[:state.carried]
+                            moved = reanchor(carried, state.candidates[0], centre, anchor, frames[k].intrinsics)
+                            state.candidates = torch.cat([moved, state.candidates[state.carried:]])
                 record = tracker.step(state, frames[k], k, self.events.iteration)
             wall = time.perf_counter() - tic
             elapsed += wall
@@ -296,9 +306,10 @@ class Inversion:
                          f"{how} ({initializer.cache})")
         return initializer
 
-    def _ask_bank(self, loaded: LoadedModel, settings: RenderSettings, initializer: Initializer, state: TrackerState,
-                  frame: Frame, detection: Detection) -> tuple[bool, int]:
-        """Before a frame's first step, ask the bank about it. When the best candidate no longer puts the
+    def _ask_bank(self, initializer: Initializer, state: TrackerState, frame: Frame, detection: Detection,
+                  opacity: np.ndarray | None) -> tuple[bool, int]:
+        """Before a frame's first step, ask the bank about it. When the best candidate, whose silhouette is
+        ``opacity`` (:func:`rendered_silhouette`; None with the lost check off), no longer puts the
         object where the frame shows it (lost), all of ``reinit_count`` hypotheses join the candidates;
         otherwise the best ``watch_count`` that are more than ``watch_deg`` from every candidate do (a
         wrong mode of a near-symmetric object keeps the silhouette, so only another attitude tells), unless
@@ -306,7 +317,7 @@ class Inversion:
         cut one its hypotheses are wrong in range and attitude alike. Returns (lost, hypotheses added)."""
         c = self.config
         if c.lost_iou > 0:
-            iou = silhouette_iou(loaded, settings, state.candidates[0], frame.intrinsics, detection.mask)
+            iou = silhouette_iou(opacity, detection.mask)
             if iou < c.lost_iou:
                 found = initializer.poses(frame.image, detection, frame.intrinsics, c.reinit_count)
                 state.candidates = torch.cat([state.candidates, found])
