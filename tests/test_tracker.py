@@ -228,17 +228,24 @@ def test_a_candidate_whose_loss_turns_nan_is_dropped_and_the_rest_go_on(toy_sequ
     assert not torch.equal(result.c2w[0], start[0])  # the others kept optimizing
 
 
+def _first_frame_step(toy_sequence, count: int, seed: int):
+    """The model, the target centre, ``count`` starts off the first frame's truth and that frame prepared
+    with 64 random pixels an iteration and 64 ranking pixels."""
+    loaded, frames, centre = toy_sequence
+    frame = frames[0]
+    start = _starts(frame.c2w_true, centre, count, loaded.dataparser_scale, seed=seed)
+    sampler = PixelSampler("random", 64).prepare(frame.image)
+    eval_pixels = torch.as_tensor(PixelSampler("random", 64).prepare(frame.image).sample(np.random.default_rng(0)))
+    return loaded, centre, start, PreparedFrame.from_image(loaded, frame.image, frame.intrinsics, sampler,
+                                                           eval_pixels, centre)
+
+
 @pytest.mark.parametrize("length", [1.0, 0.2])
 def test_adams_translation_steps_are_in_units_of_the_length_given(toy_sequence, length):
     """Adam's first step moves every screw coordinate by its learning rate (its sign the gradient's): radians
     for the turn, ``length`` model units for the translation. With the object's radius as the length, the
     step sizes no longer depend on the scale the dataparser gave the scene."""
-    loaded, frames, centre = toy_sequence
-    frame = frames[0]
-    start = _starts(frame.c2w_true, centre, 2, loaded.dataparser_scale, seed=7)
-    sampler = PixelSampler("random", 64).prepare(frame.image)
-    eval_pixels = torch.as_tensor(PixelSampler("random", 64).prepare(frame.image).sample(np.random.default_rng(0)))
-    prepared = PreparedFrame.from_image(loaded, frame.image, frame.intrinsics, sampler, eval_pixels, centre)
+    loaded, centre, start, prepared = _first_frame_step(toy_sequence, 2, seed=7)
     config = OptimizerConfig(iterations=1, lr=0.01)
     result = optimize_candidates(loaded, start, prepared, config, np.random.default_rng(0), length=length)
     to_centre, from_centre = centred(centre)
@@ -251,12 +258,7 @@ def test_averaging_ends_the_step_at_the_moving_average_of_the_iterates(toy_seque
     """With ``averaging`` the path is Adam's own (the same pixels, losses and iterates), and the step's
     final poses are the exponential moving average of the iterates' screw coordinates, computed here by
     hand from the iterates of the same step without averaging."""
-    loaded, frames, centre = toy_sequence
-    frame = frames[0]
-    start = _starts(frame.c2w_true, centre, 3, loaded.dataparser_scale, seed=3)
-    sampler = PixelSampler("random", 64).prepare(frame.image)
-    eval_pixels = torch.as_tensor(PixelSampler("random", 64).prepare(frame.image).sample(np.random.default_rng(0)))
-    prepared = PreparedFrame.from_image(loaded, frame.image, frame.intrinsics, sampler, eval_pixels, centre)
+    loaded, centre, start, prepared = _first_frame_step(toy_sequence, 3, seed=3)
     plain = optimize_candidates(loaded, start, prepared, OptimizerConfig(iterations=4), np.random.default_rng(1))
     averaged = optimize_candidates(loaded, start, prepared, OptimizerConfig(iterations=4, averaging=0.5),
                                    np.random.default_rng(1))
