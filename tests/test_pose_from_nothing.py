@@ -14,6 +14,8 @@ import torch
 
 from nerfinv_plugin.cli.invert import entrypoint
 from nerfinv_plugin.initialization.bank import BankConfig
+from nerfinv_plugin.inversion import reanchor as reanchor_module
+from nerfinv_plugin.inversion import session as session_module
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.session import Events, Inversion
 from nerfinv_plugin.inversion.settings import InvertConfig
@@ -97,6 +99,30 @@ def _quick(toy_run, sequence: Path, out: Path, **changes) -> InvertConfig:
     return InvertConfig(load_config=toy_run[0], sequence=str(sequence), output_dir=out, name="e", timestamp="t",
                         device="cpu", pixels=128, eval_pixels=512, bank=BankConfig(subdivisions=2),
                         **({"optimizer": OptimizerConfig(iterations=15)} | changes))
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_reanchor_moves_the_carried_candidates_before_each_later_frame(toy_run, shirt, tmp_path, monkeypatch,
+                                                                        enabled):
+    """With ``--reanchor`` the candidates a step carried are moved before each frame after the first, by the
+    anchor measured on the best of them (its range by the anchor's factor); without it nothing moves."""
+    seen = []
+
+    def recording(c2w, best, centre, anchor, intrinsics):
+        moved = reanchor_module.reanchor(c2w, best, centre, anchor, intrinsics)
+        _, before = reanchor_module.project_centre(c2w[:1].double(), centre.double(), intrinsics)
+        _, after = reanchor_module.project_centre(moved[:1].double(), centre.double(), intrinsics)
+        seen.append((anchor.range_scale, float(after[0] / before[0]), c2w.shape[0]))
+        return moved
+
+    monkeypatch.setattr(session_module, "reanchor", recording)
+    Inversion.create(_quick(toy_run, shirt / "roe1", tmp_path, stop=3, reanchor=enabled)).run()
+    if not enabled:
+        assert seen == []
+        return
+    assert len(seen) == 2, seen  # frames 1 and 2
+    for scale, ratio, carried in seen:
+        assert abs(ratio - scale) < 1e-4 and scale != 1.0 and carried == 9, seen  # keep 3 x (1 + 2 spawned)
 
 
 def test_the_default_path_never_reads_the_truth(toy_run, shirt, tmp_path):

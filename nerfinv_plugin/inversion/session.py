@@ -240,13 +240,8 @@ class Inversion:
                         opacity = None if c.lost_iou == 0 else rendered_silhouette(
                             loaded, settings, state.candidates[0], frames[k].intrinsics)
                         reinitialized, watched = self._ask_bank(initializer, state, frames[k], detection, opacity)
-                    if c.reanchor and not detection.touches_border:
-                        anchor = silhouette_anchor(loaded, settings, state.candidates[0], detection,
-                                                   frames[k].intrinsics, centre)
-                        if anchor is not None:
-                            carried = state.candidates[:state.carried]
-                            moved = reanchor(carried, state.candidates[0], centre, anchor, frames[k].intrinsics)
-                            state.candidates = torch.cat([moved, state.candidates[state.carried:]])
+                    if c.reanchor:
+                        self._reanchor(loaded, settings, state, frames[k], detection, centre)
                 record = tracker.step(state, frames[k], k, self.events.iteration)
             wall = time.perf_counter() - tic
             elapsed += wall
@@ -305,6 +300,20 @@ class Inversion:
         self.events.info(f"view bank: {self.config.bank.views} views x {self.config.bank.in_plane} in-plane angles, "
                          f"{how} ({initializer.cache})")
         return initializer
+
+    @staticmethod
+    def _reanchor(loaded: LoadedModel, settings: RenderSettings, state: TrackerState, frame: Frame,
+                  detection: Detection, centre: Tensor) -> None:
+        """``--reanchor``: move the candidates the last step carried (not the bank's that joined since) so that
+        the best one's silhouette matches the frame's object (:mod:`nerfinv_plugin.inversion.reanchor`); not on
+        a frame that cuts the object, whose area and centroid say nothing of the range."""
+        if detection.touches_border:
+            return
+        anchor = silhouette_anchor(loaded, settings, state.candidates[0], detection, frame.intrinsics, centre)
+        if anchor is not None:
+            carried = state.candidates[:state.carried]
+            moved = reanchor(carried, state.candidates[0], centre, anchor, frame.intrinsics)
+            state.candidates = torch.cat([moved, state.candidates[state.carried:]])
 
     def _ask_bank(self, initializer: Initializer, state: TrackerState, frame: Frame, detection: Detection,
                   opacity: np.ndarray | None) -> tuple[bool, int]:
