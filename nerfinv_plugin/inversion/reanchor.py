@@ -15,7 +15,8 @@ about its own camera axes, keeping its attitude; nothing here reads a label.
 Both silhouettes are what the object detector sees: the frame's mask, and the render at the candidate
 thresholded at the grey level that separated the frame's object (the model's accumulation is no substitute:
 on a model trained on RGB images over black, the one the issue's user trains, its area at the true pose was
-26% below the observed mask's, while the thresholded render was within 2.5%). Both are read at the same
+26% below the observed mask's, while the thresholded render was within 2.5% on roe1; on a tumbling roe2 it
+was still 9-15% larger, which is why the option is off at a steady range). Both are read at the same
 lattice of full-resolution pixel centres, at most :data:`ANCHOR_RAYS` of them, so that a frame's anchor
 costs a fraction of one iteration's rays.
 """
