@@ -16,6 +16,7 @@ from nerfinv_plugin.model.render import (
     Intrinsics,
     RenderSettings,
     bound_to_target,
+    pinhole_cameras,
     ray_bundle,
     render,
     render_image,
@@ -161,6 +162,36 @@ def test_rays_and_outputs_follow_the_pose_convention(toy):
     # up is +y in OpenGL camera axes, and the camera looks along -z.
     centre_dir = rot @ torch.tensor([-0.5 / 60, 0.5 / 60, -1.0])
     torch.testing.assert_close(bundle.directions[0].cpu(), centre_dir / centre_dir.norm(), rtol=1e-5, atol=1e-6)
+
+
+def test_ray_bundle_is_nerfstudios_pinhole_camera_with_its_gradients(toy):
+    """The bundle is what ``Cameras.generate_rays`` gives for the same poses and pixels (origins, unit
+    directions, pixel areas, direction norms), and a loss on them back-propagates to the poses alike."""
+    loaded, _ = toy
+    rotations = Rotation.from_rotvec([[0.3, -0.2, 0.5], [-1.1, 0.4, 2.0], [0.0, 2.5, -0.3]]).as_matrix()
+    c2w = torch.eye(4).repeat(3, 1, 1)
+    c2w[:, :3, :3] = torch.as_tensor(rotations, dtype=torch.float32)
+    c2w[:, :3, 3] = torch.tensor([[0.5, -1.0, 4.0], [2.0, 0.3, -1.5], [-0.2, -3.0, 0.7]])
+    intrinsics = Intrinsics(61.0, 58.5, 41.3, 24.2, 80, 50)
+    pixels = torch.tensor([[0, 0], [24, 39], [49, 79], [7, 61], [33, 2]])
+    ours_c2w, theirs_c2w = (c2w.clone().to(loaded.device).requires_grad_(True) for _ in range(2))
+    ours = ray_bundle(loaded, ours_c2w, intrinsics, pixels)
+    cameras = pinhole_cameras(theirs_c2w[:, :3], intrinsics)
+    theirs = cameras.generate_rays(camera_indices=torch.arange(3, device=loaded.device).repeat_interleave(5)[:, None],
+                                   coords=(pixels.to(loaded.device, torch.float32) + 0.5).repeat(3, 1))
+    for name in ("origins", "directions", "pixel_area"):
+        torch.testing.assert_close(getattr(ours, name), getattr(theirs, name), rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(ours.metadata["directions_norm"], theirs.metadata["directions_norm"])
+    assert ours.camera_indices.shape == theirs.camera_indices.shape and not ours.camera_indices.any()
+    weights = torch.linspace(-1.0, 2.0, 15 * 3, device=loaded.device).reshape(15, 3)
+
+    def loss(bundle):
+        return (((bundle.origins + 0.7 * bundle.directions) * weights).sum() + 3.0 * bundle.pixel_area.sum())
+
+    loss(ours).backward()
+    loss(theirs).backward()
+    torch.testing.assert_close(ours_c2w.grad, theirs_c2w.grad, rtol=1e-5, atol=1e-6)
+    assert float(ours_c2w.grad[:, :, :3].abs().max()) > 0.1  # the rotations get a gradient, not only the origins
 
 
 def test_keep_gradients_patches_one_model_and_is_undone(toy):
