@@ -1,6 +1,6 @@
 """Pose from nothing: translation from a box against an analytic projection, the icosphere, the bank's
 in-plane angles against a rolled camera, bank recall on the fixture's held-out views, the object's extent,
-and the bank cache."""
+and the caches of the bank and of its entries."""
 
 import json
 import shutil
@@ -14,12 +14,15 @@ import torch
 from nerfinv_plugin.data.images import read_rgb_over_black
 from nerfinv_plugin.geometry.frames import OPENCV_TO_OPENGL
 from nerfinv_plugin.geometry.se3 import geodesic_deg
+from nerfinv_plugin.initialization import bank as bank_module
 from nerfinv_plugin.initialization import extent
 from nerfinv_plugin.initialization.bank import (
     BankConfig,
     bank_entries,
     bank_intrinsics,
     cached_bank,
+    cached_entries,
+    entries_file,
     hypotheses,
     icosphere,
     render_bank,
@@ -232,3 +235,29 @@ def test_the_bank_cache_is_reused_and_rebuilt_when_the_checkpoint_changes(toy_ru
     _, path_other, built_other = cached_bank(changed, AS_TRAINED, centre, 0.8, BankConfig(subdivisions=0, render_px=20))
     assert built_other and path_other != path_changed
     assert Path(path_other).parent == tmp_path / "cache" / "banks"
+
+
+def test_cached_entries_round_trip_exactly_and_follow_the_bank_settings_and_the_detector(toy_model, bounded,
+                                                                                          tmp_path, monkeypatch):
+    """The entries read back are the computed ones to the bit; other entry settings, or another detector's
+    source, are another file (computed again, never stale)."""
+    config = BankConfig(subdivisions=0, in_plane=6, render_px=24, crop_px=16)
+    centre = toy_model.point_to_model(TOY_CENTRE)
+    bank = render_bank(toy_model, bounded, centre, RADIUS_M * toy_model.dataparser_scale, config)
+    bank_path = tmp_path / "bank-x.npz"
+    computed = cached_entries(bank, bank_path, config)
+    path = entries_file(bank_path, config)
+    assert path.is_file() and len(computed.views) >= 6
+    monkeypatch.setattr(bank_module, "bank_entries", lambda *args: pytest.fail("entries computed again"))
+    read = cached_entries(bank, bank_path, config)
+    for name in ("masks", "greys", "quaternions"):
+        assert getattr(read, name).dtype == getattr(computed, name).dtype
+        assert np.array_equal(getattr(read, name), getattr(computed, name))
+    assert all(
+        np.array_equal(a.w2c_rotation, b.w2c_rotation) and (a.range, a.focal, a.box_offset, a.box_size)
+        == (b.range, b.focal, b.box_offset, b.box_size) for a, b in zip(read.views, computed.views, strict=True))
+    assert entries_file(bank_path, BankConfig(subdivisions=0, in_plane=12, render_px=24, crop_px=16)) != path
+    detector = tmp_path / "detect.py"
+    detector.write_text(Path(find_object.__code__.co_filename).read_text() + "\n# changed\n")
+    monkeypatch.setattr(find_object, "__code__", find_object.__code__.replace(co_filename=str(detector)))
+    assert entries_file(bank_path, config) != path

@@ -1,16 +1,19 @@
 """The faster field pieces used at inversion time compute nerfstudio's functions: the compiled hash-grid
 kernel (values and gradients with respect to the positions; used only where the table is frozen), the fused
-torch forward it falls back to (CUDA, trainable tables) and the max-norm scene contraction. Each runs on the
-CPU and, where there is one, on CUDA."""
+torch forward it falls back to (CUDA, trainable tables), the max-norm scene contraction, and the compiled
+proposal density field (values; used only without gradients). Each runs on the CPU and, where there is one,
+on CUDA."""
 
 import pytest
 import torch
 from nerfstudio.field_components.encodings import HashEncoding
 from nerfstudio.field_components.spatial_distortions import SceneContraction
+from nerfstudio.fields.density_fields import HashMLPDensityField
 
 from nerfinv_plugin.model import hash_kernel
 from nerfinv_plugin.model.contraction import use_max_norm_contraction
-from nerfinv_plugin.model.hash_kernel import kernel_hash_forward, use_hash_kernel
+from nerfinv_plugin.model.hash_kernel import kernel_density_fn, kernel_hash_forward, use_density_kernel, use_hash_kernel
+from nerfinv_plugin.model.nerfacto_tiny import ScaledContraction
 
 needs_kernel = pytest.mark.skipif(not hash_kernel.enabled(), reason="NERFINV_HASH_KERNEL=0")
 DEVICES = [pytest.param("cpu"), pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
@@ -75,6 +78,62 @@ def test_max_norm_contraction_matches_nerfstudio(order, device):
     (grad_ref,) = torch.autograd.grad((expected * cotangent).sum(), [x])
     (grad_ours,) = torch.autograd.grad((got * cotangent).sum(), [x])
     torch.testing.assert_close(grad_ours, grad_ref)
+
+
+def proposal_network(unit: float | None, hidden: int, layers: int, device: str = "cpu") -> HashMLPDensityField:
+    """A frozen proposal density field with weights that make densities of every size (not its zero init)."""
+    torch.manual_seed(1)
+    contraction = SceneContraction(order=float("inf")) if unit is None else ScaledContraction(unit)
+    network = HashMLPDensityField(torch.tensor([[-1.0, -1, -1], [1, 1, 1]]), num_layers=layers, hidden_dim=hidden,
+                                  spatial_distortion=contraction, num_levels=5, max_res=128, log2_hashmap_size=14,
+                                  average_init_density=0.01, implementation="torch")
+    with torch.no_grad():
+        network.encoding.hash_table.uniform_(-1.5, 1.5)
+        for layer in network.mlp_base[1].layers:
+            layer.weight.uniform_(-1.0, 1.0).mul_(4.0 / layer.in_features**0.5)
+            layer.bias.uniform_(-1.0, 1.0)
+    use_max_norm_contraction(network)
+    use_hash_kernel(network)
+    return network.to(device).requires_grad_(False)
+
+
+@needs_kernel
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("unit,hidden,layers", [(0.17, 16, 2), (None, 64, 3)])
+def test_density_kernel_matches_nerfstudios_proposal_network(unit, hidden, layers, device):
+    """Positions inside the contraction's unit cube, outside it (contracted), and far out; on CUDA, or with a
+    graph being recorded, nerfstudio's own function runs."""
+    network = proposal_network(unit, hidden, layers, device)
+    scale = 1.0 if unit is None else unit
+    x = (torch.rand(40, 50, 3, device=device) - 0.5) * 3.0 * scale
+    x[0] *= 100.0
+    x = x.requires_grad_(True)  # as nerfacto's sample positions do, evaluated under no_grad all the same
+    fn = kernel_density_fn(network)
+    with torch.no_grad():
+        expected, got = network.density_fn(x), fn(x)
+    assert got.shape == expected.shape == (40, 50, 1)
+    assert float(expected.max()) > 100 * float(expected.min()) > 0  # densities of every size were compared
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-9)
+    with_graph = fn(x)  # nerfstudio's, differentiable
+    assert with_graph.requires_grad
+    torch.testing.assert_close(with_graph.detach(), expected)
+
+
+def test_density_kernel_covers_nerfactos_proposal_networks_and_leaves_others():
+    """``use_density_kernel`` swaps the bound density functions a nerfacto model hands its proposal sampler,
+    including one network shared by both levels, and leaves a network with a linear head alone; a trainable
+    network keeps nerfstudio's function (the thesis' loop trains nothing, but makes the weights trainable)."""
+    shared, linear = proposal_network(0.2, 16, 2), proposal_network(0.2, 16, 2)
+    linear.use_linear = True
+    model = torch.nn.Module()
+    model.density_fns = [shared.density_fn, shared.density_fn, linear.density_fn]
+    assert use_density_kernel(model) == 2
+    assert model.density_fns[2] == linear.density_fn and model.density_fns[0] != shared.density_fn
+    x = torch.rand(500, 3) * 0.3
+    shared.requires_grad_(True)
+    with torch.no_grad():
+        reference = shared.density_fn(x)
+        torch.testing.assert_close(model.density_fns[0](x), reference, rtol=0, atol=0)  # nerfstudio's, bit for bit
 
 
 def test_the_kernel_is_built_with_openmp_else_on_one_thread_else_not_at_all(monkeypatch):

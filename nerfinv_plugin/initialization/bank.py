@@ -11,8 +11,10 @@ zero-mean correlation of grey levels. The best entries, kept apart on SO(3) so t
 a half-turn flip survive, become full poses through their boxes (:mod:`box_pose`).
 
 Rendering is the expensive part, so the renders are cached on disk, keyed on the checkpoint's bytes and
-everything else that determines them; the entries are recomputed from them (3.6 s for the default bank
-on the 2-core machine).
+everything else that determines them. The entries computed from them are cached beside them (3.6 s to
+compute for the default bank on the 2-core machine, a few tenths of a second to read; about 190 MB),
+keyed on the bank, the entry settings and the source of the code that computes them (this module and the
+detector), so that a changed detector never meets entries cut by the old one.
 """
 
 import hashlib
@@ -301,6 +303,26 @@ class BankEntries:
     quaternions: np.ndarray
     """[E, 4] the entries' world-to-camera rotations, for suppression on SO(3)."""
 
+    def save(self, path: Path) -> None:
+        """Uncompressed (reading is what a run waits for), written to a temporary name and moved into place."""
+        partial = path.with_name(f".{path.name}.{os.getpid()}.partial.npz")
+        views = self.views
+        np.savez(partial, masks=self.masks, greys=self.greys, quaternions=self.quaternions,
+                 rotations=np.array([v.w2c_rotation for v in views]).reshape(-1, 3, 3),
+                 offsets=np.array([v.box_offset for v in views], dtype=np.float64).reshape(-1, 2),
+                 sizes=np.array([v.box_size for v in views], dtype=np.float64),
+                 cameras=np.array([[v.range, v.focal] for v in views], dtype=np.float64).reshape(-1, 2))
+        os.replace(partial, path)
+
+    @classmethod
+    def load(cls, path: Path) -> "BankEntries":
+        with np.load(path) as data:
+            views = [BankView(rotation, float(camera[0]), float(camera[1]), (float(offset[0]), float(offset[1])),
+                              float(size))
+                     for rotation, camera, offset, size in zip(data["rotations"], data["cameras"], data["offsets"],
+                                                               data["sizes"])]
+            return cls(data["masks"], data["greys"], views, data["quaternions"])
+
 
 def bank_entries(bank: ViewBank, config: BankConfig) -> BankEntries:
     """Turn every view through the in-plane angles, box the object in each turned image and crop it as an
@@ -330,6 +352,29 @@ def bank_entries(bank: ViewBank, config: BankConfig) -> BankEntries:
     quaternions = rotmat_to_quat_wxyz(np.array(rotations).reshape(-1, 3, 3))
     return BankEntries(np.array(masks, dtype=np.float32), _normalised(np.array(greys, dtype=np.float32)), views,
                        quaternions)
+
+
+def entries_file(bank_path: Path, config: BankConfig) -> Path:
+    """Where the entries of the bank cached at ``bank_path`` are cached: keyed on it, on the entry settings,
+    and on the bytes of the code that cuts them (this module, the detector)."""
+    digest = hashlib.sha256(f"{bank_path.name} {config.in_plane} {config.crop_px} {CROP_MARGIN}".encode())
+    for source in (Path(__file__), Path(find_object.__code__.co_filename)):
+        digest.update(source.read_bytes())
+    return bank_path.with_name(f"entries-{digest.hexdigest()[:20]}.npz")
+
+
+def cached_entries(bank: ViewBank, bank_path: Path, config: BankConfig) -> BankEntries:
+    """:func:`bank_entries` of ``bank`` (cached at ``bank_path``), from the cache or computed and cached."""
+    path = entries_file(bank_path, config)
+    if path.is_file():
+        try:
+            return BankEntries.load(path)
+        except (OSError, ValueError, KeyError):
+            pass  # a damaged cache file is computed again
+    entries = bank_entries(bank, config)
+    if entries.views:
+        entries.save(path)
+    return entries
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,8 @@ from torch import Tensor
 from nerfinv_plugin.initialization.bank import (
     BankConfig,
     BankEntries,
-    bank_entries,
     cached_bank,
+    cached_entries,
     hypotheses,
     hypothesis_poses,
 )
@@ -53,7 +53,7 @@ class Initializer:
         if radius is None:
             radius = framed_radius(loaded, torch.as_tensor(centre, dtype=torch.float32), settings)
         bank, path, built = cached_bank(loaded, settings, centre, radius, config, on_build)
-        entries = bank_entries(bank, config)
+        entries = cached_entries(bank, path, config)
         if not entries.views:
             raise ModelLoadError(f"the model renders nothing from any of the bank's {config.views} viewpoints about "
                                  "the target: is --target the object's centre, and did the model learn it?")

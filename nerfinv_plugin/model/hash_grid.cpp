@@ -8,6 +8,7 @@
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <vector>
@@ -176,7 +177,75 @@ torch::Tensor hash_grid_backward(torch::Tensor grad_out, torch::Tensor jacobian)
   return grad;
 }
 
+
+// A frozen proposal density field (nerfstudio's HashMLPDensityField with a torch MLP), forward only: the
+// proposal networks are evaluated without gradients during inversion, and in torch each evaluation is some
+// thirty tensor operations on [samples, ...] intermediates. Per sample, in this order, as nerfstudio does:
+// the infinity-norm scene contraction of the position measured in ``unit``, (x + 2) / 4, the selector of
+// points inside the unit cube (zeroed outside), the hash encoding, the MLP (ReLU between layers, none after),
+// exp, times ``init_density``, times the selector. positions [N, 3] -> densities [N, 1].
+torch::Tensor density_forward(torch::Tensor positions, double unit, torch::Tensor table, torch::Tensor scalings,
+                              torch::Tensor offsets, int64_t table_size, std::vector<torch::Tensor> weights,
+                              std::vector<torch::Tensor> biases, double init_density) {
+  const Grid grid(positions, table, scalings, offsets, table_size);
+  constexpr int64_t kMaxWidth = 256;
+  TORCH_CHECK(!weights.empty() && weights.size() == biases.size(), "one bias per weight matrix");
+  int64_t width = grid.levels * grid.f;
+  std::vector<const float*> w, b;
+  std::vector<int64_t> outs, ins;
+  for (size_t k = 0; k < weights.size(); ++k) {
+    TORCH_CHECK(weights[k].scalar_type() == torch::kFloat32 && weights[k].is_contiguous() && weights[k].dim() == 2 &&
+                    weights[k].size(1) == width && weights[k].size(0) <= kMaxWidth,
+                "layer ", k, ": weights must be contiguous float32 [out <= 256, ", width, "]");
+    TORCH_CHECK(biases[k].scalar_type() == torch::kFloat32 && biases[k].is_contiguous() &&
+                    biases[k].numel() == weights[k].size(0),
+                "layer ", k, ": bias must be contiguous float32 [out]");
+    ins.push_back(width);
+    width = weights[k].size(0);
+    outs.push_back(width);
+    w.push_back(weights[k].data_ptr<float>());
+    b.push_back(biases[k].data_ptr<float>());
+  }
+  TORCH_CHECK(width == 1, "the last layer must have one output (the density before its activation)");
+  TORCH_CHECK(grid.levels * grid.f <= kMaxWidth, "at most 256 encoded features");
+  auto out = torch::empty({grid.n, 1}, positions.options());
+  float* dst = out.data_ptr<float>();
+  const float u = static_cast<float>(unit), scale = static_cast<float>(init_density);
+  at::parallel_for(0, grid.n, 256, [&](int64_t begin, int64_t end) {
+    float a[kMaxWidth], h[kMaxWidth];
+    for (int64_t i = begin; i < end; ++i) {
+      float x[3];
+      for (int c = 0; c < 3; ++c) x[c] = grid.pos[3 * i + c] / u;
+      const float mag = std::max(std::fabs(x[0]), std::max(std::fabs(x[1]), std::fabs(x[2])));
+      bool inside = true;
+      for (int c = 0; c < 3; ++c) {
+        const float contracted = mag < 1.0f ? x[c] : (2.0f - 1.0f / mag) * (x[c] / mag);
+        x[c] = (contracted + 2.0f) / 4.0f;
+        inside = inside && x[c] > 0.0f && x[c] < 1.0f;
+      }
+      if (!inside) {
+        dst[i] = 0.0f;  // nerfstudio encodes the origin instead and multiplies the density by zero
+        continue;
+      }
+      for (int64_t l = 0; l < grid.levels; ++l) encode_level<0, false>(grid, x, l, grid.f, a + l * grid.f, nullptr);
+      for (size_t k = 0; k < w.size(); ++k) {
+        const bool last = k + 1 == w.size();
+        for (int64_t o = 0; o < outs[k]; ++o) {
+          float acc = b[k][o];
+          const float* row = w[k] + o * ins[k];
+          for (int64_t m = 0; m < ins[k]; ++m) acc += row[m] * a[m];
+          h[o] = last || acc > 0.0f ? acc : 0.0f;
+        }
+        std::copy(h, h + outs[k], a);
+      }
+      dst[i] = scale * std::exp(a[0]);
+    }
+  });
+  return out;
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &hash_grid_forward, "hash grid encoding of a frozen table, optionally with its Jacobian");
   m.def("backward", &hash_grid_backward, "gradient with respect to the positions, from the forward's Jacobian");
+  m.def("density", &density_forward, "a frozen proposal density field (contraction, hash grid, MLP, exp)");
 }

@@ -13,6 +13,10 @@ extension loader the first time it is needed (about 30 s; then cached by torch u
 rounding): float32 positions on the CPU and a table that does not require gradients. Anything
 else (training, CUDA, double precision) goes through :func:`fused_hash_forward`.
 
+The same extension evaluates nerfacto's proposal networks whole (:func:`kernel_density_fn`): contraction, hash
+grid, MLP and activation in one pass per sample, forward only, since inversion evaluates them without
+gradients (nerfacto does, once trained); in torch they took a fifth of an iteration.
+
 Set ``NERFINV_HASH_KERNEL=0`` to never build or use it. Where it cannot be built (no C++ compiler), a
 warning says so once and the torch forward is used.
 """
@@ -20,13 +24,18 @@ warning says so once and the torch forward is used.
 import functools
 import hashlib
 import logging
+import math
 import os
 import types
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
 from nerfstudio.field_components.encodings import HashEncoding
+from nerfstudio.field_components.mlp import MLP
+from nerfstudio.field_components.spatial_distortions import SceneContraction
+from nerfstudio.fields.density_fields import HashMLPDensityField
 from torch import Tensor
 
 from nerfinv_plugin.model.fused_hash import fused_hash_forward, use_fused_hash_encoding
@@ -103,3 +112,66 @@ def use_hash_kernel(module: torch.nn.Module) -> int:
     """Switch every torch-backed ``HashEncoding`` inside ``module`` to :func:`kernel_hash_forward`.
     Returns how many were switched."""
     return use_fused_hash_encoding(module, kernel_hash_forward)
+
+
+DensityFn = Callable[..., Tensor]
+
+
+def _kernel_mlp(network: HashMLPDensityField) -> MLP | None:
+    """The proposal network's MLP when the kernel computes what it computes: nerfstudio's torch MLP after a
+    torch hash encoding, ReLU between its layers, nothing after the last, no skip connections, the infinity-norm
+    scene contraction in front; else ``None``."""
+    if network.use_linear or not isinstance(network.spatial_distortion, SceneContraction):
+        return None
+    if not math.isinf(float(network.spatial_distortion.order or 2)):
+        return None
+    encoding, mlp = network.mlp_base
+    if not isinstance(encoding, HashEncoding) or encoding.tcnn_encoding is not None or not isinstance(mlp, MLP):
+        return None
+    if mlp.tcnn_encoding is not None or mlp._skip_connections or mlp.out_activation is not None:
+        return None
+    if not isinstance(mlp.activation, torch.nn.ReLU) or any(layer.bias is None for layer in mlp.layers):
+        return None
+    return mlp
+
+
+def kernel_density_fn(network: HashMLPDensityField) -> DensityFn:
+    """``network.density_fn`` computed by the kernel's ``density`` (one pass per sample through the contraction,
+    hash grid, MLP and activation) where it applies: float32 CPU positions, no graph being recorded, weights
+    that do not require gradients (nerfacto evaluates its proposal networks under ``no_grad`` once trained).
+    Anywhere else, and for a network the kernel does not cover, nerfstudio's own."""
+    mlp = _kernel_mlp(network)
+    if mlp is None:
+        return network.density_fn
+    encoding = network.mlp_base[0]
+
+    def density_fn(positions: Tensor, times: Tensor | None = None) -> Tensor:
+        if (times is not None or positions.dtype != torch.float32 or positions.device.type != "cpu"
+                or torch.is_grad_enabled() or extension() is None
+                or any(parameter.requires_grad for parameter in network.parameters())):
+            return network.density_fn(positions, times)
+        unit = getattr(network.spatial_distortion, "unit", None)  # nerfacto-tiny's contraction unit
+        with torch.profiler.record_function("nerfinv::density"):
+            density = extension().density(
+                positions.reshape(-1, 3).contiguous(), 1.0 if unit is None else float(unit),
+                encoding.hash_table.contiguous(), encoding.scalings.to(torch.float32).contiguous(),
+                encoding.hash_offset.to(torch.int64), int(encoding.hash_table_size),
+                [layer.weight.contiguous() for layer in mlp.layers], [layer.bias.contiguous() for layer in mlp.layers],
+                float(network.average_init_density))
+        return density.view(*positions.shape[:-1], 1)
+
+    return density_fn
+
+
+def use_density_kernel(model: torch.nn.Module) -> int:
+    """Point a nerfacto-like model's proposal density functions (``model.density_fns``, the bound
+    ``density_fn`` of each proposal network, which its proposal sampler calls) at :func:`kernel_density_fn` of
+    the same network; returns how many were covered."""
+    fns = getattr(model, "density_fns", None)
+    count = 0
+    for i, fn in enumerate(fns if isinstance(fns, list) else []):
+        network = getattr(fn, "__self__", None)
+        if isinstance(network, HashMLPDensityField) and _kernel_mlp(network) is not None:
+            fns[i] = kernel_density_fn(network)
+            count += 1
+    return count

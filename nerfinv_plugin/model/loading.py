@@ -20,7 +20,7 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.base_model import Model
 
 from nerfinv_plugin.model.contraction import use_max_norm_contraction
-from nerfinv_plugin.model.hash_kernel import use_hash_kernel
+from nerfinv_plugin.model.hash_kernel import use_density_kernel, use_hash_kernel
 from nerfinv_plugin.model.loaded import LoadedModel, ModelLoadError
 from nerfinv_plugin.model.nerfacto_tiny import lpips_disabled
 from nerfinv_plugin.model.render import check_renders
@@ -108,6 +108,13 @@ def restore_step_state(model: Model, step: int) -> None:
     except AttributeError:
         # splatfacto wires its callbacks to the optimizers; what its rendering reads is ``step``.
         model.step = step
+    # nerfacto's proposal sampler counts steps in a callback run after each training iteration; loaded, its count
+    # starts at 0, and below step 10 it evaluates the proposal networks with autograd recording for a training
+    # update that never comes (their densities only place the samples, whose depths it detaches). At the
+    # trained step it evaluates them under no_grad, as training did there: the same numbers, no dead graph.
+    sampler = getattr(model, "proposal_sampler", None)
+    if sampler is not None and callable(getattr(sampler, "step_cb", None)):
+        sampler.step_cb(step)
 
 
 def load_model(config_path: Path, step: int | None = None, device: Device = "auto") -> LoadedModel:
@@ -132,6 +139,7 @@ def load_model(config_path: Path, step: int | None = None, device: Device = "aut
         raise ModelLoadError(f"checkpoint {checkpoint} does not match the model in {config_path}: "
                              f"{str(err).splitlines()[0]}") from err
     use_hash_kernel(model)  # the compiled kernel once frozen; the fused torch forward otherwise
+    use_density_kernel(model)  # the proposal networks' whole forward, where they are evaluated without gradients
     use_max_norm_contraction(model)
     model.to(torch_device).eval().requires_grad_(False)
     result = LoadedModel(model, config, checkpoint, int(saved.get("step", 0)), torch_device, transform, scale)
