@@ -18,6 +18,7 @@ import pytest
 import torch
 import tyro
 
+from nerfinv_plugin.bench.gpu_check import compare_devices
 from nerfinv_plugin.bench.observed import read_observed
 from nerfinv_plugin.bench.perf import compare_loops, profile_ours, sweep
 from nerfinv_plugin.bench.recall import bank_benchmark, bank_recall
@@ -43,10 +44,10 @@ from nerfinv_plugin.model.render import (
 from nerfinv_plugin.synth.scenes import SCENE_CENTRES
 
 TOY_TARGET = tuple(float(v) for v in SCENE_CENTRES["toy"])
-SUBCOMMANDS = ("grid", "perf", "render", "screw", "bank", "viewer", "lightbox")
+SUBCOMMANDS = ("grid", "perf", "gpu", "render", "screw", "bank", "viewer", "lightbox")
 
 
-def test_help_lists_the_seven_subcommands_and_one_is_required(monkeypatch, capsys):
+def test_help_lists_the_eight_subcommands_and_one_is_required(monkeypatch, capsys):
     shown = subprocess.run(["ns-invert-bench", "--help"], capture_output=True, text=True, check=True).stdout
     assert "{" + ",".join(SUBCOMMANDS) + "}" in shown
     assert all(f"• {name} " in shown for name in SUBCOMMANDS)  # each with its line of description
@@ -331,3 +332,25 @@ def _folder_without_truth(data: Path, tmp_path: Path) -> Path:
                                                     "cameraMatrix": [[focal, 0, width / 2], [0, focal, height / 2],
                                                                      [0, 0, 1]]}))
     return folder
+
+
+def test_the_device_check_agrees_on_one_device_and_catches_another_model(loaded, observed, toy_run, monkeypatch,
+                                                                          capsys):
+    """``ns-invert-bench gpu``'s comparison, run CPU against CPU: the same checkpoint agrees exactly; a copy
+    whose field's hash table is scaled does not. Where there is no CUDA the command says so (exit 2)."""
+    sampling = Sampling(0.6, (8, 4), 8)
+    same = compare_devices(loaded, load_model(toy_run[0], device="cpu"), observed, 3, 64, sampling)
+    assert same.agrees and same.gradient_scale > 1e-4
+    assert (same.rgb_max_abs, same.accumulation_max_abs, same.gradient_max_rel) == (0.0, 0.0, 0.0)
+    other = load_model(toy_run[0], device="cpu")
+    with torch.no_grad():
+        other.model.field.mlp_base.model[0].hash_table.mul_(1.05)
+    changed = compare_devices(loaded, other, observed, 3, 64, sampling)
+    assert not changed.agrees and changed.rgb_max_abs > 1e-3
+    if not torch.cuda.is_available():
+        monkeypatch.setattr(sys, "argv", ["ns-invert-bench", "gpu", "--load-config", str(toy_run[0]), "--sequence",
+                                          f"{toy_run[1]}:test"])
+        with pytest.raises(SystemExit) as exit_info:
+            entrypoint()
+        err = capsys.readouterr().err
+        assert exit_info.value.code == 2 and "no CUDA device here" in err and len(err.strip().splitlines()) == 1

@@ -104,14 +104,31 @@ def _timed(device: torch.device, work: Callable[[], None]) -> tuple[float, int]:
     return seconds, int(peak())
 
 
+@contextmanager
+def sampler_as_nerfstudio_loads_it(model: torch.nn.Module):
+    """Within the block, nerfacto's proposal sampler has the step count nerfstudio's loader leaves it with (0),
+    as the thesis' implementation had it: it then evaluates the proposal networks with autograd recording.
+    ``load_model`` gives it the trained step (where it evaluates them under no_grad); it gets it back on exit."""
+    sampler = getattr(model, "proposal_sampler", None)
+    if sampler is None or not hasattr(sampler, "_step"):
+        yield
+        return
+    saved = sampler._step, sampler._steps_since_update
+    sampler._step, sampler._steps_since_update = 0, 0
+    try:
+        yield
+    finally:
+        sampler._step, sampler._steps_since_update = saved
+
+
 def thesis_step(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor, target: Tensor) -> Tensor:
-    """One iteration as the thesis' implementation does it: a ray bundle per candidate, rendered through
-    the patched ``get_outputs_for_camera_ray_bundle`` of stock nerfstudio (its own hash-grid forward)
-    with the model's weights not frozen, the candidates' losses stacked and back-propagated once.
-    ``c2w`` is [N, 3, 4]. Returns the rendered colours [N, P, 3]."""
+    """One iteration as the thesis' implementation does it: a ray bundle per candidate from nerfstudio's camera,
+    rendered through the patched ``get_outputs_for_camera_ray_bundle`` of stock nerfstudio (its own hash-grid
+    forward and proposal sampler as its loader leaves them) with the model's weights not frozen, the candidates'
+    losses stacked and back-propagated once. ``c2w`` is [N, 3, 4]. Returns the rendered colours [N, P, 3]."""
     model = loaded.model
     rgbs, losses = [], []
-    with keep_gradients(model), stock_hash_encoding(model):
+    with keep_gradients(model), stock_hash_encoding(model), sampler_as_nerfstudio_loads_it(model):
         for n in range(c2w.shape[0]):
             camera = pinhole_cameras(c2w[n:n + 1], intrinsics).to(loaded.device)
             bundle = camera.generate_rays(camera_indices=0, coords=pixels.float() + 0.5)

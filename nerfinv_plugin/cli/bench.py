@@ -23,6 +23,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from tyro.conf import Positional, UseAppendAction, arg
 
+from nerfinv_plugin.bench.gpu_check import bank_throughput, compare_devices
 from nerfinv_plugin.bench.grid import (
     Bench,
     Cell,
@@ -360,6 +361,55 @@ class PerfBench(SpeedBench):
 
 
 @dataclass(kw_only=True)
+class GpuBench(SpeedBench):
+    """On a machine with CUDA: check the CUDA path against the CPU one, then fill a GPU row of the throughput
+    tables. The same checkpoint is loaded on both devices; the same candidates (5-15 degrees off the frame's
+    truth) render the same random pixels on each, and the colours, accumulations and pose gradients must agree
+    (1e-3 on colours, 1% of the largest gradient entry); exit code 1 when they do not. Then ns-invert-bench
+    perf's comparison runs on the GPU, and the default view bank is rendered there, forward only. Never part
+    of the tests: they run without a GPU."""
+
+    sequence: str
+    """A sequence with ground truth (ns-invert's --sequence); the candidates are placed around its frame."""
+    frame: int = 0
+    """Which frame of the sequence to use."""
+    resolution: tuple[int, int] | None = None
+    """Working resolution WIDTH HEIGHT (default: the images' own)."""
+    iterations: int = 60
+    """Iterations of the throughput comparison (the thesis: 60)."""
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Target centre in the dataset frame."""
+
+    def main(self) -> None:
+        if not torch.cuda.is_available():
+            raise ModelLoadError("no CUDA device here (torch.cuda.is_available() is False): run ns-invert-bench gpu "
+                                 "on a machine with one")
+        console = Console(soft_wrap=True)
+        if self.threads is not None:
+            torch.set_num_threads(self.threads)
+        cpu, gpu = load_model(self.load_config, device="cpu"), load_model(self.load_config, device="cuda")
+        observed = read_observed(cpu, self.sequence, self.frame, self.target, self.resolution)
+        console.print(f"{self.header(gpu)} ({torch.cuda.get_device_name(gpu.device)}); frame {observed.name}")
+        agreement = compare_devices(cpu, gpu, observed, self.candidates, self.pixels, self.render, self.seed)
+        console.print(f"CUDA against CPU on {agreement.rays:,} rays: colour {agreement.rgb_max_abs:.2e}, accumulation "
+                      f"{agreement.accumulation_max_abs:.2e} (max abs), pose gradient {agreement.gradient_max_rel:.2e} "
+                      f"of its largest entry {agreement.gradient_scale:.3g}: "
+                      + ("[bold green]agree[/bold green]" if agreement.agrees else "[bold red]DISAGREE[/bold red]"))
+        if not agreement.agrees:
+            raise SystemExit(1)
+        compared = compare_loops(gpu, read_observed(gpu, self.sequence, self.frame, self.target, self.resolution),
+                                 self.candidates, self.pixels, self.iterations, self.render, self.seed)
+        bank_s, bank_rays = bank_throughput(gpu, observed, self.render)
+        thesis, ours = compared.thesis, compared.ours
+        console.print("| device | thesis s / iteration | nerfinv s / iteration | ratio | nerfinv rays / s | "
+                      "peak memory, thesis / ours | bank (642 views, forward only) |\n|---|---|---|---|---|---|---|")
+        console.print(f"| {torch.cuda.get_device_name(gpu.device)} | {thesis.per_iteration:.3f} | "
+                      f"{ours.per_iteration:.4f} | {compared.ratio:.2f}x | {ours.rays_per_second:,.0f} | "
+                      f"{thesis.peak_memory_bytes / MB:,.0f} / {ours.peak_memory_bytes / MB:,.0f} MB | "
+                      f"{bank_s:.1f} s, {bank_rays:,.0f} rays/s |")
+
+
+@dataclass(kw_only=True)
 class RenderBench(SpeedBench):
     """Time one inversion iteration (render, loss, backward) the thesis' way and ours, on the same rays.
 
@@ -605,6 +655,8 @@ Commands = (
                                               "success counts, tables, plots")]
     | Annotated[PerfBench, tyro.conf.subcommand(name="perf", description="one Monte Carlo step, the thesis' "
                                                 "way and ours: time, rays/s, memory; --sweep, --profile")]
+    | Annotated[GpuBench, tyro.conf.subcommand(name="gpu", description="on a CUDA machine: its renders and "
+                                               "gradients against the CPU's, then a GPU row of the perf table")]
     | Annotated[RenderBench, tyro.conf.subcommand(name="render", description="one iteration's render + "
                                                   "backward, the thesis' way and ours, on the same rays")]
     | Annotated[ScrewBench, tyro.conf.subcommand(name="screw", description="screws about the target against "
