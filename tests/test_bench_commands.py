@@ -20,7 +20,7 @@ import tyro
 
 from nerfinv_plugin.bench.gpu_check import compare_devices
 from nerfinv_plugin.bench.observed import read_observed
-from nerfinv_plugin.bench.perf import compare_loops, profile_ours, sweep
+from nerfinv_plugin.bench.perf import compare_loops, profile_ours, sampler_as_nerfstudio_loads_it, sweep
 from nerfinv_plugin.bench.recall import bank_benchmark, bank_recall
 from nerfinv_plugin.bench.render_speed import render_problem, render_speed
 from nerfinv_plugin.bench.sampling import AS_TRAINED, Sampling
@@ -354,3 +354,30 @@ def test_the_device_check_agrees_on_one_device_and_catches_another_model(loaded,
             entrypoint()
         err = capsys.readouterr().err
         assert exit_info.value.code == 2 and "no CUDA device here" in err and len(err.strip().splitlines()) == 1
+
+
+def test_loaded_nerfacto_evaluates_its_proposals_without_a_graph_and_the_thesis_side_with_one(loaded, observed,
+                                                                                              monkeypatch):
+    """At the trained step nerfacto's sampler runs its proposal networks under no_grad (nothing back-propagates
+    through them); the thesis' loop gets the step nerfstudio's loader leaves, where it records their graph."""
+    seen: list[bool] = []
+    fns = loaded.model.density_fns
+
+    def spy(fn):
+        def density_fn(positions, times=None):
+            seen.append(torch.is_grad_enabled())
+            return fn(positions, times)
+        return density_fn
+
+    monkeypatch.setattr(loaded.model, "density_fns", [spy(fn) for fn in fns])
+    c2w = observed.truth[None].clone().requires_grad_(True)
+    pixels = torch.tensor([[10, 20], [25, 40]])
+    render(loaded, c2w, observed.intrinsics, pixels).rgb.sum().backward()
+    assert seen == [False, False] and float(c2w.grad.abs().sum()) > 0
+    seen.clear()
+    with sampler_as_nerfstudio_loads_it(loaded.model):
+        render(loaded, c2w, observed.intrinsics, pixels)
+    assert seen == [True, True]
+    seen.clear()
+    render(loaded, c2w, observed.intrinsics, pixels)
+    assert seen == [False, False]  # the trained step is back
