@@ -99,6 +99,15 @@ def icosphere(subdivisions: int) -> np.ndarray:
     return points / np.linalg.norm(points, axis=1, keepdims=True)
 
 
+def _save_npz(path: Path, writer: Callable[..., None], **arrays: np.ndarray) -> None:
+    """``writer`` (``np.savez`` or ``np.savez_compressed``) to a name of this process beside ``path``, then moved
+    into place: two runs caching the same file at once (grid workers) never leave half of one."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.{os.getpid()}.partial.npz")
+    writer(partial, **arrays)
+    os.replace(partial, path)
+
+
 @dataclass
 class ViewBank:
     """The rendered views (model frame) and what they were rendered with."""
@@ -122,11 +131,8 @@ class ViewBank:
     cache reports the time it once took)."""
 
     def save(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        partial = path.with_name(f".{path.name}.{os.getpid()}.partial.npz")
-        np.savez_compressed(partial, c2w=self.c2w, rgb=self.rgb, accumulation=self.accumulation, centre=self.centre,
-                            scalars=np.array([self.radius, self.range, self.focal, self.build_s]))
-        os.replace(partial, path)
+        _save_npz(path, np.savez_compressed, c2w=self.c2w, rgb=self.rgb, accumulation=self.accumulation,
+                  centre=self.centre, scalars=np.array([self.radius, self.range, self.focal, self.build_s]))
 
     @classmethod
     def load(cls, path: Path) -> "ViewBank":
@@ -304,15 +310,13 @@ class BankEntries:
     """[E, 4] the entries' world-to-camera rotations, for suppression on SO(3)."""
 
     def save(self, path: Path) -> None:
-        """Uncompressed (reading is what a run waits for), written to a temporary name and moved into place."""
-        partial = path.with_name(f".{path.name}.{os.getpid()}.partial.npz")
+        """Uncompressed: reading is what a run waits for."""
         views = self.views
-        np.savez(partial, masks=self.masks, greys=self.greys, quaternions=self.quaternions,
-                 rotations=np.array([v.w2c_rotation for v in views]).reshape(-1, 3, 3),
-                 offsets=np.array([v.box_offset for v in views], dtype=np.float64).reshape(-1, 2),
-                 sizes=np.array([v.box_size for v in views], dtype=np.float64),
-                 cameras=np.array([[v.range, v.focal] for v in views], dtype=np.float64).reshape(-1, 2))
-        os.replace(partial, path)
+        _save_npz(path, np.savez, masks=self.masks, greys=self.greys, quaternions=self.quaternions,
+                  rotations=np.array([v.w2c_rotation for v in views]).reshape(-1, 3, 3),
+                  offsets=np.array([v.box_offset for v in views], dtype=np.float64).reshape(-1, 2),
+                  sizes=np.array([v.box_size for v in views], dtype=np.float64),
+                  cameras=np.array([[v.range, v.focal] for v in views], dtype=np.float64).reshape(-1, 2))
 
     @classmethod
     def load(cls, path: Path) -> "BankEntries":
