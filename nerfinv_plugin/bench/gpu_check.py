@@ -18,6 +18,7 @@ import torch
 from nerfinv_plugin.bench.observed import ObservedFrame
 from nerfinv_plugin.bench.sampling import Sampling
 from nerfinv_plugin.initialization.bank import BankConfig, render_bank
+from nerfinv_plugin.initialization.extent import framed_radius
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import render
 
@@ -83,11 +84,11 @@ def bank_throughput(loaded: LoadedModel, observed: ObservedFrame, sampling: Samp
     per second."""
     config = config or BankConfig()
     settings = sampling.settings(loaded, observed.centre.to(loaded.device))
-    radius = settings.target_sphere[1] if settings.target_sphere is not None else loaded.dataparser_scale
+    radius = framed_radius(loaded, observed.centre, settings)  # what ns-invert's bank frames under these settings
     if loaded.device.type == "cuda":
         torch.cuda.synchronize(loaded.device)
     tic = time.perf_counter()
-    render_bank(loaded, settings, observed.centre.cpu().numpy().astype(np.float64), float(radius), config)
+    render_bank(loaded, settings, observed.centre.cpu().numpy().astype(np.float64), radius, config)
     if loaded.device.type == "cuda":
         torch.cuda.synchronize(loaded.device)
     seconds = time.perf_counter() - tic

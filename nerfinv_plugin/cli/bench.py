@@ -397,8 +397,7 @@ class GpuBench(SpeedBench):
                       + ("[bold green]agree[/bold green]" if agreement.agrees else "[bold red]DISAGREE[/bold red]"))
         if not agreement.agrees:
             raise SystemExit(1)
-        compared = compare_loops(gpu, read_observed(gpu, self.sequence, self.frame, self.target, self.resolution),
-                                 self.candidates, self.pixels, self.iterations, self.render, self.seed)
+        compared = compare_loops(gpu, observed, self.candidates, self.pixels, self.iterations, self.render, self.seed)
         bank_s, bank_rays = bank_throughput(gpu, observed, self.render)
         thesis, ours = compared.thesis, compared.ours
         console.print("| device | thesis s / iteration | nerfinv s / iteration | ratio | nerfinv rays / s | "

@@ -171,7 +171,7 @@ def use_density_kernel(model: torch.nn.Module) -> int:
     count = 0
     for i, fn in enumerate(fns if isinstance(fns, list) else []):
         network = getattr(fn, "__self__", None)
-        if isinstance(network, HashMLPDensityField) and _kernel_mlp(network) is not None:
-            fns[i] = kernel_density_fn(network)
+        if isinstance(network, HashMLPDensityField) and (fast := kernel_density_fn(network)) != fn:
+            fns[i] = fast
             count += 1
     return count
