@@ -195,7 +195,7 @@ class Inversion:
         if radius is not None:
             self.events.info(f"object radius {radius:.3g} m, read off the model's density (rays are bounded to it)")
         framing = None  # read once (unbounded rays measure the density grid): the bank frames it, Adam steps in it
-        if c.starts.source == "bank" or c.optimizer.translation_unit == "object":
+        if c.starts.source == "bank" or c.optimizer.translation_unit == "object" or c.reanchor:
             framing = framed_radius(loaded, centre, settings)
         initializer = None
         if c.starts.source == "bank":
@@ -241,7 +241,7 @@ class Inversion:
                             loaded, settings, state.candidates[0], frames[k].intrinsics)
                         reinitialized, watched = self._ask_bank(initializer, state, frames[k], detection, opacity)
                     if c.reanchor:
-                        self._reanchor(loaded, settings, state, frames[k], detection, centre)
+                        self._reanchor(loaded, settings, state, frames[k], detections, k, centre, framing)
                 record = tracker.step(state, frames[k], k, self.events.iteration)
             wall = time.perf_counter() - tic
             elapsed += wall
@@ -303,13 +303,16 @@ class Inversion:
 
     @staticmethod
     def _reanchor(loaded: LoadedModel, settings: RenderSettings, state: TrackerState, frame: Frame,
-                  detection: Detection, centre: Tensor) -> None:
-        """``--reanchor``: move the candidates the last step carried (not the bank's that joined since) so that
-        the best one's silhouette matches the frame's object (:mod:`nerfinv_plugin.inversion.reanchor`); not on
-        a frame that cuts the object, whose area and centroid say nothing of the range."""
-        if detection.touches_border:
+                  detections: list[Detection | None], k: int, centre: Tensor, radius: float) -> None:
+        """``--reanchor``: move the candidates the last step carried (not the bank's that joined since) by the
+        camera's motion from the frame they were estimated on to frame ``k``, read off the best one's silhouette
+        aligned with both frames' objects (:mod:`nerfinv_plugin.inversion.reanchor`; frames that cut the object
+        included). ``radius`` (model units) holds the object about ``centre``."""
+        before, after = detections[state.last_frame], detections[k]
+        if before is None or after is None:
             return
-        anchor = silhouette_anchor(loaded, settings, state.candidates[0], detection, frame.intrinsics, centre)
+        anchor = silhouette_anchor(loaded, settings, state.candidates[0], before, after, frame.intrinsics, centre,
+                                   radius)
         if anchor is not None:
             carried = state.candidates[:state.carried]
             moved = reanchor(carried, state.candidates[0], centre, anchor, frame.intrinsics)

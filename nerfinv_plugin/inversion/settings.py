@@ -139,10 +139,10 @@ class InvertConfig:
     """How far (attitude) a bank hypothesis must be from every candidate to join them. 15 also catches a
     tracker that slid 15-30 degrees off (30 until 2026-12-02: docs/benchmarks.md, counts from nothing)."""
     reanchor: bool = False
-    """Before each frame after the first, move the carried candidates' range and image position so that the
-    best one's silhouette matches the object found in the frame in size and centroid (attitudes unchanged;
-    not on a frame that cuts the object): an approach that closes 4-10% of the range a frame otherwise
-    leaves every candidate starting too far (nerfinv_plugin/inversion/reanchor.py)."""
+    """Before each frame after the first, move the carried candidates' range and image position by the camera's
+    motion since their frame, read off the best one's silhouette aligned with the objects found in both
+    frames (attitudes unchanged; frames that cut the object too): an approach that closes 4-10% of the range
+    a frame otherwise leaves every candidate starting too far (nerfinv_plugin/inversion/reanchor.py)."""
     steps_per_frame: int = 1
     """Monte Carlo steps spent on each frame before moving to the next (1: the thesis' trajectory method)."""
     clock: ClockMode = "frames"
