@@ -194,12 +194,15 @@ def _overlaps(smooth: Silhouette, points: Tensor, observed: Tensor, scales: Tens
     c = torch.tensor(lattice.centre_px, dtype=torch.float32)
     span = torch.tensor([max(w - 1, 1), max(h - 1, 1)], dtype=torch.float32) * lattice.stride
     origin = torch.tensor([lattice.x0, lattice.y0], dtype=torch.float32)
+    to_grid = 2.0 / span  # lattice pixels to grid_sample's [-1, 1]
+    total = observed.sum()
     ious = []
-    for scale in scales:  # one scale at a time: [D, P, 2] stays small
-        where = c + scale * (points[None] - c - shifts[:, None, :])
-        grid = (where - origin) / span * 2.0 - 1.0
+    for scale in scales:  # one scale at a time: [D, P, 2] stays small; the warp is affine in the points
+        offsets = (c * (1.0 - scale) - scale * shifts - origin) * to_grid - 1.0
+        grid = (points * (scale * to_grid))[None] + offsets[:, None, :]
         sampled = F.grid_sample(values, grid[None], mode="bilinear", padding_mode="zeros", align_corners=True)[0, 0]
-        ious.append(torch.minimum(sampled, observed).sum(-1) / torch.maximum(sampled, observed).sum(-1).clamp_min(1e-6))
+        common = torch.minimum(sampled, observed).sum(-1)
+        ious.append(common / (sampled.sum(-1) + total - common).clamp_min(1e-6))  # sum max = sum a + sum b - sum min
     return torch.stack(ious)
 
 
