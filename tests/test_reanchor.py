@@ -130,3 +130,14 @@ def test_no_alignment_from_an_empty_silhouette_or_an_implausible_change_of_range
     assert align(rendered, _mask(_camera((0.0, 0.0, 10.0)))) is None  # half the size: not a frame's change
     same = align(rendered, _mask(truth))
     assert abs(same.scale - 1.0) < 0.005 and np.allclose(same.shift_px, 0.0, atol=0.3), same
+
+
+def test_a_change_of_range_under_two_percent_is_left_out_and_the_shift_kept():
+    """At a steady range a tumbling object's change of outline reads as a change of range of a percent or
+    so: not applied. The camera 1% nearer and moved aside: the range stays, the image shift follows."""
+    then, now = _camera((0.0, 0.0, 6.0)), _camera((0.3, 0.0, 5.94))
+    rendered = _silhouette(then)
+    anchor = motion_anchor(align(rendered, _mask(then)), align(rendered, _mask(now)), rendered.lattice.centre_px)
+    assert anchor.range_scale == 1.0, anchor
+    (wanted,), _ = project_centre(now[None], CENTRE, FRAME)
+    assert abs(anchor.centre_px[0] - float(wanted[0])) < 0.5 and abs(anchor.centre_px[1] - FRAME.cy) < 0.5, anchor
