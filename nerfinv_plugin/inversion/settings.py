@@ -138,11 +138,13 @@ class InvertConfig:
     watch_deg: float = 15.0
     """How far (attitude) a bank hypothesis must be from every candidate to join them. 15 also catches a
     tracker that slid 15-30 degrees off (30 until 2026-12-02: docs/benchmarks.md, counts from nothing)."""
-    reanchor: bool = False
+    reanchor: bool = True
     """Before each frame after the first, move the carried candidates' range and image position by the camera's
     motion since their frame, read off the best one's silhouette aligned with the objects found in both
-    frames (attitudes unchanged; frames that cut the object too): an approach that closes 4-10% of the range
-    a frame otherwise leaves every candidate starting too far (nerfinv_plugin/inversion/reanchor.py)."""
+    frames (attitudes unchanged; frames that cut the object too; changes of range under 2% left out): an
+    approach that closes 4-10% of the range a frame otherwise leaves every candidate starting too far, and
+    the frames that cut the object at its end lost it (nerfinv_plugin/inversion/reanchor.py). Uses no label;
+    on by default since 2026-12-03 (docs/benchmarks.md)."""
     steps_per_frame: int = 1
     """Monte Carlo steps spent on each frame before moving to the next (1: the thesis' trajectory method)."""
     clock: ClockMode = "frames"
