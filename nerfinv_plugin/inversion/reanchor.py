@@ -212,65 +212,40 @@ def _overlaps(smooth: Silhouette, points: Tensor, observed: Tensor, scales: Tens
     return torch.stack(ious)
 
 
-@dataclass(frozen=True)
-class Comparison:
-    """A rendered silhouette and an observed mask, both smoothed by a Gaussian one lattice stride wide (the
-    frame's beyond its border continued from its edge), ready to be overlapped under any warp.
-
-    Compared as hard masks, the best overlap came where the lattice's points fell on pixel centres, not where
-    the silhouettes agree (range factors pulled to exactly 1 by 1% on a 30-pixel disc, shifts a stride off)."""
-
-    smooth: Silhouette
-    points: Tensor
-    """[P, 2] frame pixel centres (x, y) compared."""
-    observed: Tensor
-    """[P] the smoothed mask there."""
-    reach_px: float
-    """How far the shifts are searched: half the object's image radius, at least 8 pixels."""
-
-    @classmethod
-    def of(cls, silhouette: Silhouette, mask: np.ndarray) -> "Comparison | None":
-        """None when either silhouette is (nearly) empty."""
-        stride = silhouette.lattice.stride
-        if mask.sum() < MIN_AREA_PX or silhouette.values.sum() * stride ** 2 < MIN_AREA_PX:
-            return None
-        smooth = Silhouette(cv2.GaussianBlur(silhouette.values, (0, 0), 1.0, borderType=cv2.BORDER_CONSTANT),
-                            silhouette.lattice)
-        reach = max(8.0, silhouette.lattice.radius_px / 2.0)
-        points = _observed_points(silhouette, mask, reach)
-        blurred = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), float(stride), borderType=cv2.BORDER_REPLICATE)
-        rows, cols = (points[:, 1] - 0.5).long().numpy(), (points[:, 0] - 0.5).long().numpy()
-        return cls(smooth, points, torch.as_tensor(blurred[rows, cols]), reach)
-
-    def overlaps(self, scales: Tensor, shifts: Tensor) -> Tensor:
-        """Soft IoU [S, D] under every scale [S] and shift [D, 2] (:func:`_overlaps`)."""
-        return _overlaps(self.smooth, self.points, self.observed, scales, shifts)
-
-    def best(self) -> "Alignment | None":
-        """The range factor and image shift that best map the silhouette onto the mask, searched coarse to
-        fine (:data:`SEARCH`): range factors within :data:`MAX_SCALE`, shifts within :attr:`reach_px`. None
-        when they overlap less than :data:`MIN_IOU` at best, or when the best factor is at the search's end."""
-        log_scale, shift = 0.0, torch.zeros(2)
-        log_half, shift_half = float(np.log(MAX_SCALE)), self.reach_px
-        best = 0.0
-        for scale_count, shift_count in SEARCH:
-            log_scales = torch.linspace(log_scale - log_half, log_scale + log_half, scale_count)
-            offsets = torch.linspace(-shift_half, shift_half, shift_count)
-            shifts = shift + torch.stack(torch.meshgrid(offsets, offsets, indexing="xy"), -1).reshape(-1, 2)
-            iou = self.overlaps(torch.exp(log_scales), shifts)
-            i, j = divmod(int(torch.argmax(iou)), iou.shape[1])
-            log_scale, shift, best = float(log_scales[i]), shifts[j].clone(), float(iou[i, j])
-            log_half, shift_half = 2.0 * log_half / (scale_count - 1), 2.0 * shift_half / (shift_count - 1)
-        if best < MIN_IOU or abs(log_scale) >= np.log(MAX_SCALE):  # at the search's end: the change is larger
-            return None
-        return Alignment(float(np.exp(log_scale)), (float(shift[0]), float(shift[1])), best)
-
-
 def align(silhouette: Silhouette, mask: np.ndarray) -> Alignment | None:
     """The range factor and image shift that best map ``silhouette`` onto the observed ``mask`` [H, W] bool
-    (:meth:`Comparison.best`); None also when either is (nearly) empty."""
-    comparison = Comparison.of(silhouette, mask)
-    return None if comparison is None else comparison.best()
+    (:class:`Alignment`), searched coarse to fine (:data:`SEARCH`): range factors within :data:`MAX_SCALE`,
+    shifts within half the object's image radius (at least 8 pixels). None when either silhouette is (nearly)
+    empty, when they overlap less than :data:`MIN_IOU` at best, or when the best factor is at the search's end.
+
+    Both silhouettes are smoothed first, by a Gaussian one lattice stride wide (the frame's beyond its border
+    continued from its edge): compared as hard masks, the best overlap came where the lattice's points fell on
+    pixel centres, not where the silhouettes agree (range factors pulled to exactly 1 by 1% on a 30-pixel
+    disc, shifts a stride off)."""
+    stride = silhouette.lattice.stride
+    if mask.sum() < MIN_AREA_PX or silhouette.values.sum() * stride ** 2 < MIN_AREA_PX:
+        return None
+    smooth = Silhouette(cv2.GaussianBlur(silhouette.values, (0, 0), 1.0, borderType=cv2.BORDER_CONSTANT),
+                        silhouette.lattice)
+    reach = max(8.0, silhouette.lattice.radius_px / 2.0)
+    points = _observed_points(silhouette, mask, reach)
+    blurred = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), float(stride), borderType=cv2.BORDER_REPLICATE)
+    rows, cols = (points[:, 1] - 0.5).long().numpy(), (points[:, 0] - 0.5).long().numpy()
+    observed = torch.as_tensor(blurred[rows, cols])
+    log_scale, shift = 0.0, torch.zeros(2)
+    log_half, shift_half = float(np.log(MAX_SCALE)), reach
+    best = 0.0
+    for scale_count, shift_count in SEARCH:
+        log_scales = torch.linspace(log_scale - log_half, log_scale + log_half, scale_count)
+        offsets = torch.linspace(-shift_half, shift_half, shift_count)
+        shifts = shift + torch.stack(torch.meshgrid(offsets, offsets, indexing="xy"), -1).reshape(-1, 2)
+        iou = _overlaps(smooth, points, observed, torch.exp(log_scales), shifts)
+        i, j = divmod(int(torch.argmax(iou)), iou.shape[1])
+        log_scale, shift, best = float(log_scales[i]), shifts[j].clone(), float(iou[i, j])
+        log_half, shift_half = 2.0 * log_half / (scale_count - 1), 2.0 * shift_half / (shift_count - 1)
+    if best < MIN_IOU or abs(log_scale) >= np.log(MAX_SCALE):  # at the search's end: the change is larger
+        return None
+    return Alignment(float(np.exp(log_scale)), (float(shift[0]), float(shift[1])), best)
 
 
 def motion_anchor(before: Alignment, after: Alignment, centre_px: tuple[float, float]) -> Anchor:
