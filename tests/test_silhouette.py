@@ -9,7 +9,13 @@ import torch
 from nerfinv_plugin.initialization.initializer import rendered_silhouette, silhouette_iou
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig, PreparedFrame, candidate_losses, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler
-from nerfinv_plugin.inversion.silhouette import EVAL_BAND_PIXELS, Silhouette, outline_band, silhouette_per_ray
+from nerfinv_plugin.inversion.silhouette import (
+    EVAL_BAND_PIXELS,
+    Silhouette,
+    outline_band,
+    silhouette_per_ray,
+    soft_grey,
+)
 from nerfinv_plugin.model.render import AS_TRAINED, render, render_image
 
 
@@ -29,6 +35,14 @@ def test_silhouette_loss_against_a_hand_computed_case():
     inside = torch.tensor([1.0, 1.0, 0.0, 0.0])
     # (1-1)^2, (0.25-1)^2, (0-0)^2, (0.5-0)^2
     assert torch.allclose(silhouette_per_ray(accumulation, inside), torch.tensor([0.0, 0.5625, 0.0, 0.25]))
+
+
+def test_the_grey_silhouette_against_a_hand_computed_case():
+    rgb = torch.tensor([[0.1, 0.2, 0.05], [0.0, 0.0, 0.0], [1.0, 0.5, 0.5]])
+    # max over channels: 51, 0, 255 grey levels; (51 - 41) / 5 = 2, (0 - 41) / 5, (255 - 41) / 5
+    expected = torch.sigmoid(torch.tensor([2.0, -8.2, 42.8]))
+    assert torch.allclose(soft_grey(rgb, 41.0, 5.0), expected)
+    assert abs(float(soft_grey(rgb, 41.0, 5.0)[0]) - 0.8808) < 1e-4
 
 
 def test_the_ranking_band_pixels_are_fixed_by_the_mask_and_capped():
@@ -87,12 +101,32 @@ def test_the_combined_loss_is_colour_plus_weight_times_silhouette(toy_view):
     assert combined[1] > combined[0]  # the shifted pose puts the outline elsewhere
 
 
-def test_the_silhouette_alone_pulls_a_shifted_candidate_back_onto_the_mask(toy_view):
+def test_the_grey_silhouette_reads_the_rendered_colour_as_the_detector_reads_a_frame(toy_view):
+    loaded, intrinsics, truth, image, mask, _ = toy_view
+    poses = torch.stack([truth, _shifted(truth, 0.3, loaded.dataparser_scale)])
+    silhouette = Silhouette.from_mask(mask, 2, 48, 0.7, threshold=20.0, softness=3.0)
+    band = silhouette.band(silhouette.eval_pixels)
+    pixels = torch.as_tensor(PixelSampler("random", 64).prepare(image).sample(np.random.default_rng(1)))
+    observed = torch.as_tensor(image, dtype=torch.float32)[pixels[:, 0], pixels[:, 1]] / 255.0
+    combined = candidate_losses(loaded, poses, intrinsics, pixels, observed, "mse", False, band=band)
+    with torch.no_grad():
+        colour = render(loaded, poses, intrinsics, pixels).rgb
+        grey = render(loaded, poses, intrinsics, band.pixels).rgb.amax(-1) * 255.0
+    soft = 1.0 / (1.0 + torch.exp(-(grey - 20.0) / 3.0))
+    reference = ((colour - observed) ** 2).mean((1, 2)) + 0.7 * ((soft - band.inside) ** 2).mean(1)
+    assert torch.allclose(combined, reference, rtol=1e-4, atol=1e-7)
+    assert combined[1] > combined[0]
+
+
+@pytest.mark.parametrize("threshold", [None, 20.0], ids=["accumulation", "grey"])
+def test_the_silhouette_alone_pulls_a_shifted_candidate_back_onto_the_mask(toy_view, threshold):
     loaded, intrinsics, truth, image, mask, centre = toy_view
+    if threshold is not None:  # the mask as the detector finds it, at that grey level
+        mask = image.max(-1) > threshold
     start = _shifted(truth, 0.25, loaded.dataparser_scale)[None]
     sampler = PixelSampler("random", 32).prepare(image)
     eval_pixels = torch.as_tensor(sampler.sample(np.random.default_rng(0)))
-    silhouette = Silhouette.from_mask(mask, 3, 128, 1.0)
+    silhouette = Silhouette.from_mask(mask, 3, 128, 1.0, threshold=threshold)
     frame = PreparedFrame.from_image(loaded, image, intrinsics, sampler, eval_pixels, centre, silhouette=silhouette)
     config = OptimizerConfig(iterations=30, colour_weight=0.0, silhouette_weight=1.0)
     result = optimize_candidates(loaded, start, frame, config, np.random.default_rng(0))

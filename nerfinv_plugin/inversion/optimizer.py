@@ -28,7 +28,7 @@ from nerfinv_plugin.geometry.se3 import exp_se3
 from nerfinv_plugin.inversion.appearance import GainBias
 from nerfinv_plugin.inversion.losses import LossName, per_ray_loss
 from nerfinv_plugin.inversion.sampling import PixelSampler
-from nerfinv_plugin.inversion.silhouette import BandPixels, Silhouette, silhouette_per_ray
+from nerfinv_plugin.inversion.silhouette import BandPixels, Silhouette, silhouette_per_ray, soft_grey
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, render_chunks
 
@@ -70,6 +70,15 @@ class OptimizerConfig:
     """Factor on the silhouette loss (the model's accumulation against the observed object mask, on a band
     about its outline: :mod:`nerfinv_plugin.inversion.silhouette`), added to the photometric loss. 0: off.
     Needs a model with an accumulation output."""
+    silhouette_from: Literal["accumulation", "grey"] = "accumulation"
+    """What the model's silhouette is. accumulation: its opacity along each ray. grey: its rendered colour
+    as the detector reads a frame (the maximum over channels), through a sigmoid centred on the grey level
+    that separated that frame's object, ``silhouette_softness`` levels wide; where the mask came from the
+    user (no grey level) the accumulation. A model trained on a black background may leave its dark parts
+    transparent, since black there costs nothing: its accumulation is then smaller than the object the
+    detector finds, and the term pulls candidates too far away (docs/benchmarks.md)."""
+    silhouette_softness: float = 4.0
+    """grey: the sigmoid's scale, in grey levels (0-255)."""
     silhouette_pixels: int = 128
     """Band pixels drawn per iteration for the silhouette loss, besides the photometric pixels."""
     silhouette_band_px: int = 3
@@ -166,10 +175,12 @@ def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, p
         for part, out in render_chunks(loaded, c2w, intrinsics, pixels, settings):
             per_ray = per_ray_loss(loss, out.rgb, targets[part]) * colour_scale[part]
             if band is not None:
-                if out.accumulation is None:
+                if out.accumulation is None and band.threshold is None:
                     raise ValueError(f"{type(loaded.model).__name__} gives no accumulation output: the silhouette "
                                      "loss cannot be used with it (set --optimizer.silhouette-weight 0)")
-                per_ray = per_ray + silhouette_per_ray(out.accumulation, inside[part]) * band_scale[part]
+                soft = out.accumulation if band.threshold is None else soft_grey(out.rgb, band.threshold,
+                                                                                  band.softness)
+                per_ray = per_ray + silhouette_per_ray(soft, inside[part]) * band_scale[part]
             if backward and per_ray.requires_grad:  # rays that missed the target carry no gradient
                 # Non-finite rays must not poison the others' gradients; their candidates get dropped.
                 torch.where(torch.isfinite(per_ray), per_ray, 0.0).sum().backward()

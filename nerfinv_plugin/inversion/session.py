@@ -189,6 +189,7 @@ class Inversion:
         setup = time.perf_counter()  # from here on, everything is compute the clock is charged for
         for frame, detection in zip(frames, detections):
             frame.mask = None if detection is None else detection.mask
+            frame.mask_threshold = float("nan") if detection is None else detection.threshold
             frame.object_region = None if detection is None else detection.around(RANK_MARGIN)
         centre = torch.as_tensor(loaded.point_to_model(np.asarray(c.target)), dtype=torch.float32)
         settings, radius = bound_rays(loaded, centre, c.render)

@@ -42,6 +42,12 @@ def outline_band(mask: np.ndarray, band_px: int) -> np.ndarray:
     return (outside > 0) & (inside == 0)
 
 
+def soft_grey(rgb: Tensor, threshold: float, softness: float) -> Tensor:
+    """The detector's foreground made differentiable: ``sigmoid((255 max_c rgb - threshold) / softness)`` [R]
+    from colours [R, 3] in [0, 1], ``threshold`` and ``softness`` in grey levels (0-255)."""
+    return torch.sigmoid((255.0 * rgb.amax(-1) - threshold) / softness)
+
+
 def silhouette_per_ray(accumulation: Tensor, inside: Tensor) -> Tensor:
     """Loss of each band ray [R]: ``(accumulation - inside)**2`` from accumulation [R] or [R, 1] and the
     observed foreground [R] (1 on the object, 0 off it)."""
@@ -58,6 +64,11 @@ class BandPixels:
     """[B] float, 1 on the observed mask, 0 off it."""
     weight: float
     """Factor on the mean silhouette loss, added to the colour loss."""
+    threshold: float | None = None
+    """Grey level (0-255) above which the detector called a pixel object: the model's silhouette is then its
+    colour through :func:`soft_grey`. None: its accumulation."""
+    softness: float = 4.0
+    """:func:`soft_grey`'s scale, grey levels."""
 
 
 @dataclass
@@ -72,11 +83,16 @@ class Silhouette:
     eval_pixels: Tensor
     """[E, 2] band pixels for the ranking, evenly spaced along the band."""
     weight: float
+    threshold: float | None = None
+    """See :attr:`BandPixels.threshold`."""
+    softness: float = 4.0
 
     @classmethod
     def from_mask(cls, mask: np.ndarray, band_px: int, pixels: int, weight: float,
-                  device: torch.device | str = "cpu") -> "Silhouette | None":
-        """None when ``mask`` has no outline (empty, or the whole frame)."""
+                  device: torch.device | str = "cpu", threshold: float | None = None,
+                  softness: float = 4.0) -> "Silhouette | None":
+        """None when ``mask`` has no outline (empty, or the whole frame). With ``threshold`` (grey levels) the
+        model's silhouette is read off its colour as the detector read the frame's."""
         band = outline_band(mask, band_px)
         if not band.any():
             return None
@@ -86,11 +102,12 @@ class Silhouette:
             where = where[np.linspace(0, len(where) - 1, EVAL_BAND_PIXELS).round().astype(np.int64)]
         eval_pixels = np.stack(np.unravel_index(where, band.shape), 1).astype(np.int64)
         inside = torch.as_tensor(np.asarray(mask, bool), dtype=torch.float32, device=device)
-        return cls(inside, sampler, torch.as_tensor(eval_pixels, device=device), weight)
+        return cls(inside, sampler, torch.as_tensor(eval_pixels, device=device), weight, threshold, softness)
 
     def band(self, pixels: Tensor) -> BandPixels:
         """The :class:`BandPixels` of ``pixels`` [B, 2]."""
-        return BandPixels(pixels, self.inside[pixels[:, 0], pixels[:, 1]], self.weight)
+        return BandPixels(pixels, self.inside[pixels[:, 0], pixels[:, 1]], self.weight, self.threshold,
+                          self.softness)
 
     def draw(self, rng: np.random.Generator) -> BandPixels:
         """Fresh band pixels for one iteration."""

@@ -9,6 +9,7 @@ the starting poses and is inverted alone (parallel iNeRF on each image, the base
 of a frame's last step is the estimate for that frame.
 """
 
+import math
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
@@ -93,6 +94,8 @@ class Frame:
     apart. None: the object was not found; pixels come from the whole image."""
     mask: np.ndarray | None = None
     """[H, W] bool: the object as observed, for the silhouette loss. None: no silhouette term here."""
+    mask_threshold: float = float("nan")
+    """Grey level (0-255) that separated ``mask`` from the background; NaN for a mask given by the user."""
 
     def region(self, where: Region) -> np.ndarray | None:
         """The pixels [H, W] bool to draw from for ``where``; None: anywhere in the image."""
@@ -222,8 +225,10 @@ class Tracker:
             error_fn = lambda poses, truth=frame.c2w_true: self.error_fn(poses, truth)  # noqa: E731
         silhouette = None
         if optimizer.silhouette_weight > 0 and frame.mask is not None:
+            grey = optimizer.silhouette_from == "grey" and not math.isnan(frame.mask_threshold)
             silhouette = Silhouette.from_mask(frame.mask, optimizer.silhouette_band_px, optimizer.silhouette_pixels,
-                                              optimizer.silhouette_weight, self.loaded.device)
+                                              optimizer.silhouette_weight, self.loaded.device,
+                                              frame.mask_threshold if grey else None, optimizer.silhouette_softness)
         appearance = None
         if optimizer.appearance == "gain-bias":
             appearance = state.appearance if same_frame else self._fit_appearance(state.candidates[0], frame,
