@@ -77,7 +77,7 @@ class OptimizerConfig:
     that separated that frame's object, ``silhouette_softness`` levels wide; where the mask came from the
     user (no grey level) the accumulation. A model trained on a black background may leave its dark parts
     transparent, since black there costs nothing: its accumulation is then smaller than the object the
-    detector finds, and the term pulls candidates too far away (docs/benchmarks.md)."""
+    detector finds, and the term pulls candidates nearer than the truth (docs/benchmarks.md)."""
     silhouette_softness: float = 4.0
     """grey: the sigmoid's scale, in grey levels (0-255)."""
     silhouette_pixels: int = 128

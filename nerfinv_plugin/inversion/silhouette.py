@@ -13,6 +13,10 @@ errors).
 Per band pixel the loss is ``(accumulation - inside)**2`` (``inside`` 1 on the mask, 0 off it); a
 candidate's silhouette loss is its mean over the band pixels, added to the colour loss times
 ``silhouette_weight``.
+
+By default (``silhouette_from grey``) the model's silhouette is not its accumulation but its rendered colour
+through the detector's own test made smooth (:func:`soft_grey`): a model trained on a black background may
+leave dark parts transparent, so its accumulation covers less than the object the detector finds in a frame.
 """
 
 from dataclasses import dataclass
