@@ -12,6 +12,7 @@ from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.silhouette import (
     EVAL_BAND_PIXELS,
     Silhouette,
+    edge_mask,
     outline_band,
     silhouette_per_ray,
     soft_grey,
@@ -43,6 +44,22 @@ def test_the_grey_silhouette_against_a_hand_computed_case():
     expected = torch.sigmoid(torch.tensor([2.0, -8.2, 42.8]))
     assert torch.allclose(soft_grey(rgb, 41.0, 5.0), expected)
     assert abs(float(soft_grey(rgb, 41.0, 5.0)[0]) - 0.8808) < 1e-4
+
+
+def test_the_edge_mask_cuts_a_blurred_edge_at_its_midpoint():
+    # A bright face (200) and a dark one (40) over black, the mask the detector's (threshold 12).
+    image = np.zeros((6, 12, 3), np.uint8)
+    image[1:5, 2:6] = 200
+    image[1:5, 6:10] = 40
+    image[1:5, 10] = 15  # a fringe above the detector's threshold: the kind of edge a blur leaves
+    mask = image.max(-1) > 12
+    # The median grey on the mask (36 pixels) is 40; half of it is 20: the fringe and nothing else drops out.
+    cut, level = edge_mask(image, mask, 12.0, 0.5)
+    assert level == 20.0
+    assert np.array_equal(cut, image.max(-1) > 20)
+    # The detector's threshold is the floor: a fraction of 0 keeps its mask.
+    cut, level = edge_mask(image, mask, 12.0, 0.0)
+    assert level == 12.0 and np.array_equal(cut, mask)
 
 
 def test_the_ranking_band_pixels_are_fixed_by_the_mask_and_capped():

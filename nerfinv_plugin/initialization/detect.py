@@ -205,14 +205,21 @@ def _kept_components(foreground: np.ndarray, min_area: int) -> np.ndarray | None
         keep[near] = True
 
 
+def detector_grey(image: np.ndarray) -> np.ndarray:
+    """[H, W] float32: the grey levels the threshold is applied to (steps 1 and 2: the max over channels,
+    median-filtered when the frame is noisy)."""
+    grey = grey_levels(image)
+    if pixel_noise(grey) > NOISY_GREY:
+        grey = cv2.medianBlur(grey, MEDIAN_SIZE_PX)
+    return grey
+
+
 def find_object(image: np.ndarray, min_area: int = 12) -> Detection | None:
     """The object in ``image`` ([H, W, 3] uint8, or float 0-1), found as the module docstring says.
 
     None when no object is found (all black / only noise / largest component below ``min_area`` pixels).
     """
-    grey = grey_levels(image)
-    if pixel_noise(grey) > NOISY_GREY:
-        grey = cv2.medianBlur(grey, MEDIAN_SIZE_PX)
+    grey = detector_grey(image)
     threshold = foreground_threshold(*estimate_background(grey))
     foreground = (grey > threshold).astype(np.uint8)
     closed = cv2.morphologyEx(foreground, cv2.MORPH_CLOSE, np.ones((3, 3), dtype=np.uint8))

@@ -79,6 +79,12 @@ class OptimizerConfig:
     user (no grey level) the accumulation. A model trained on a black background may leave its dark parts
     transparent, since black there costs nothing: its accumulation is then smaller than the object the
     detector finds, and the term pulls candidates nearer than the truth (docs/benchmarks.md)."""
+    silhouette_edge: float = 0.5
+    """grey: both silhouettes, the frame's and the model's, are cut at this fraction of the object's median grey
+    level in the frame (at least the detector's threshold), near the midpoint of its edges. The model blurs
+    the outline; cut at the detector's low threshold, its silhouette is larger than the frame's and the term
+    pulls the range 4-6% too far at the true attitude (docs/benchmarks.md, session 15). 0: the detector's
+    threshold."""
     silhouette_softness: float = 4.0
     """grey: the sigmoid's scale, in grey levels (0-255)."""
     silhouette_pixels: int = 128

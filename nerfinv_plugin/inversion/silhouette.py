@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from nerfinv_plugin.initialization.detect import detector_grey
 from nerfinv_plugin.inversion.sampling import PixelSampler
 
 EVAL_BAND_PIXELS = 512
@@ -44,6 +45,15 @@ def outline_band(mask: np.ndarray, band_px: int) -> np.ndarray:
     outside = cv2.dilate(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
     inside = cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
     return (outside > 0) & (inside == 0)
+
+
+def edge_mask(image: np.ndarray, mask: np.ndarray, threshold: float, fraction: float) -> tuple[np.ndarray, float]:
+    """The object of ``mask`` [H, W] bool cut at a grey level nearer its edges' midpoint, and that level:
+    ``max(threshold, fraction x the median grey level on the mask)`` on the detector's grey image of
+    ``image`` [H, W, 3] uint8. The model's silhouette is then read at the same level (:func:`soft_grey`)."""
+    grey = detector_grey(image)
+    level = max(threshold, fraction * float(np.median(grey[mask])))
+    return mask & (grey > level), level
 
 
 def soft_grey(rgb: Tensor, threshold: float, softness: float) -> Tensor:

@@ -29,7 +29,7 @@ from nerfinv_plugin.inversion.optimizer import (
     optimize_candidates,
 )
 from nerfinv_plugin.inversion.sampling import PixelSampler, Strategy
-from nerfinv_plugin.inversion.silhouette import Silhouette
+from nerfinv_plugin.inversion.silhouette import Silhouette, edge_mask
 from nerfinv_plugin.model.loaded import LoadedModel
 from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, render
 
@@ -225,10 +225,12 @@ class Tracker:
             error_fn = lambda poses, truth=frame.c2w_true: self.error_fn(poses, truth)  # noqa: E731
         silhouette = None
         if optimizer.silhouette_weight > 0 and frame.mask is not None:
-            grey = optimizer.silhouette_from == "grey" and not math.isnan(frame.mask_threshold)
-            silhouette = Silhouette.from_mask(frame.mask, optimizer.silhouette_band_px, optimizer.silhouette_pixels,
-                                              optimizer.silhouette_weight, self.loaded.device,
-                                              frame.mask_threshold if grey else None, optimizer.silhouette_softness)
+            mask, level = frame.mask, None
+            if optimizer.silhouette_from == "grey" and not math.isnan(frame.mask_threshold):
+                mask, level = edge_mask(frame.image, frame.mask, frame.mask_threshold, optimizer.silhouette_edge)
+            silhouette = Silhouette.from_mask(mask, optimizer.silhouette_band_px, optimizer.silhouette_pixels,
+                                              optimizer.silhouette_weight, self.loaded.device, level,
+                                              optimizer.silhouette_softness)
         appearance = None
         if optimizer.appearance == "gain-bias":
             appearance = state.appearance if same_frame else self._fit_appearance(state.candidates[0], frame,

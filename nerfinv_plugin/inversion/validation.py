@@ -139,6 +139,7 @@ INVERT_RULES: dict[str, Rule] = {
     "optimizer.silhouette-pixels": whole(1),
     "optimizer.silhouette-band-px": whole(1),
     "optimizer.silhouette-softness": number(above=0),
+    "optimizer.silhouette-edge": number(at_least=0, below=1),  # 1 would cut at the median: half the object
     "optimizer.lr-decay": number(above=0, at_most=1),
     "optimizer.lr-decay-iterations": whole(1),
     "optimizer.averaging": number(at_least=0, below=1),  # 1 would never leave the start
