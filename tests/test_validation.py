@@ -31,6 +31,7 @@ ACCEPTED = {
     "optimizer.min-improvement": {0}, "monte-carlo.spawn": {0}, "monte-carlo.spawn-rot-deg": {0},
     "monte-carlo.spawn-trans-m": {0}, "optimizer.gauss-newton-blur-px": {0},  # 0 px: the sharp level
     "optimizer.averaging": {0},  # 0: off
+    "optimizer.silhouette-edge": {0},  # 0: the detector's threshold
 }
 """Which of 0 and -1 each ns-invert option takes (a tuple option: every entry that value); the others take
 neither. No option takes NaN or infinity, and no tuple option takes an empty one."""
