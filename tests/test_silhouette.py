@@ -13,6 +13,7 @@ from nerfinv_plugin.inversion.silhouette import (
     EVAL_BAND_PIXELS,
     Silhouette,
     edge_mask,
+    filled,
     outline_band,
     silhouette_per_ray,
     soft_grey,
@@ -60,6 +61,19 @@ def test_the_edge_mask_cuts_a_blurred_edge_at_its_midpoint():
     # The detector's threshold is the floor: a fraction of 0 keeps its mask.
     cut, level = edge_mask(image, mask, 12.0, 0.0)
     assert level == 12.0 and np.array_equal(cut, mask)
+
+
+def test_the_cut_object_keeps_its_outer_outline_only():
+    # A dark patch inside the object is a hole in the cut mask: filled, so that its outline joins no band.
+    # A dark notch at the object's edge opens onto the background: it stays out.
+    mask = np.zeros((7, 7), bool)
+    mask[1:6, 1:6] = True
+    mask[3, 3] = False  # a hole
+    mask[2, 5] = False  # a notch on the outline
+    expected = np.zeros((7, 7), bool)
+    expected[1:6, 1:6] = True
+    expected[2, 5] = False
+    assert np.array_equal(filled(mask), expected)
 
 
 def test_the_ranking_band_pixels_are_fixed_by_the_mask_and_capped():

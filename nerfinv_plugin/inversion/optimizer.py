@@ -66,12 +66,12 @@ class OptimizerConfig:
     """Photometric loss: mse (thesis), mape (Parallel Inversion) or huber."""
     colour_weight: float = 1.0
     """Factor on the photometric loss; 0 with a silhouette weight optimizes the silhouette alone."""
-    silhouette_weight: float = 0.0
+    silhouette_weight: float = 0.25
     """Factor on the silhouette loss (the model's silhouette against the observed object mask, on a band
     about its outline: :mod:`nerfinv_plugin.inversion.silhouette`), added to the photometric loss. 0: off.
-    0.25 with ``silhouette_from grey`` ended 98% of the frames of the unseen seed-17 counts under 5 degrees
-    against 67% off, and 9 of 20 frames of user-path.sh's roe1 against 17 of 20 off: off by default until
-    the two agree (docs/benchmarks.md, session 14)."""
+    With ``silhouette_from grey`` cut at ``silhouette_edge 0.35``, 0.25 ended 40% of the frames of the unseen
+    seed-23 counts (ten seeds) under 5 degrees against 20% off, and 108 of 120 frames of user-path.sh's model
+    over three seeds against 98 (docs/benchmarks.md, session 15)."""
     silhouette_from: Literal["accumulation", "grey"] = "grey"
     """What the model's silhouette is. accumulation: its opacity along each ray. grey: its rendered colour
     as the detector reads a frame (the maximum over channels), through a sigmoid centred on the grey level
@@ -79,12 +79,12 @@ class OptimizerConfig:
     user (no grey level) the accumulation. A model trained on a black background may leave its dark parts
     transparent, since black there costs nothing: its accumulation is then smaller than the object the
     detector finds, and the term pulls candidates nearer than the truth (docs/benchmarks.md)."""
-    silhouette_edge: float = 0.5
+    silhouette_edge: float = 0.35
     """grey: both silhouettes, the frame's and the model's, are cut at this fraction of the object's median grey
-    level in the frame (at least the detector's threshold), near the midpoint of its edges. The model blurs
-    the outline; cut at the detector's low threshold, its silhouette is larger than the frame's and the term
-    pulls the range 4-6% too far at the true attitude (docs/benchmarks.md, session 15). 0: the detector's
-    threshold."""
+    level in the frame (at least the detector's threshold), nearer the middle of its edges. The model blurs
+    the outline; cut at the detector's low threshold its silhouette is larger than the frame's, and the term
+    put the range 4-6% too far at the true attitude (docs/benchmarks.md, session 15). At 0.5 dark faces and
+    texture fell below the level too and tracking got worse. 0: the detector's threshold."""
     silhouette_softness: float = 4.0
     """grey: the sigmoid's scale, in grey levels (0-255)."""
     silhouette_pixels: int = 128

@@ -50,10 +50,21 @@ def outline_band(mask: np.ndarray, band_px: int) -> np.ndarray:
 def edge_mask(image: np.ndarray, mask: np.ndarray, threshold: float, fraction: float) -> tuple[np.ndarray, float]:
     """The object of ``mask`` [H, W] bool cut at a grey level nearer its edges' midpoint, and that level:
     ``max(threshold, fraction x the median grey level on the mask)`` on the detector's grey image of
-    ``image`` [H, W, 3] uint8. The model's silhouette is then read at the same level (:func:`soft_grey`)."""
+    ``image`` [H, W, 3] uint8, its holes filled. The model's silhouette is then read at the same level
+    (:func:`soft_grey`). Filled, because a dark patch inside the object would add its own outline to the
+    band, where a blurred model's texture does not match: with it, twice Adam's iterations ended 1 degree
+    worse on the tests' toy (tests/test_pose_from_nothing.py)."""
     grey = detector_grey(image)
     level = max(threshold, fraction * float(np.median(grey[mask])))
-    return mask & (grey > level), level
+    return filled(mask & (grey > level)), level
+
+
+def filled(mask: np.ndarray) -> np.ndarray:
+    """``mask`` [H, W] bool with its holes filled: every pixel not reached from the frame's border through
+    pixels off the mask (4-connected) is on it."""
+    outside = np.pad(~mask, 1, constant_values=True).astype(np.uint8)
+    cv2.floodFill(outside, None, (0, 0), 2)
+    return (outside != 2)[1:-1, 1:-1]
 
 
 def soft_grey(rgb: Tensor, threshold: float, softness: float) -> Tensor:
