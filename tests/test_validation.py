@@ -27,7 +27,7 @@ ACCEPTED = {
     "start": {0}, "stop": {0}, "seed": {0}, "target": {0, -1}, "lost-iou": {0}, "watch-count": {0}, "watch-deg": {0},
     "starts.min-deg": {0}, "starts.max-deg": {0}, "starts.shift-m": {0}, "starts.prior-q": {-1},
     "starts.prior-r": {0, -1}, "bank.subdivisions": {0}, "bank.silhouette-weight": {0}, "bank.nms-deg": {0},
-    "optimizer.silhouette-weight": {0},  # colour-weight 0 only with a silhouette weight: the cross-check below
+    "optimizer.silhouette-weight": {0}, "optimizer.colour-weight": {0},  # not both 0: the cross-check below
     "optimizer.min-improvement": {0}, "monte-carlo.spawn": {0}, "monte-carlo.spawn-rot-deg": {0},
     "monte-carlo.spawn-trans-m": {0}, "optimizer.gauss-newton-blur-px": {0},  # 0 px: the sharp level
     "optimizer.averaging": {0},  # 0: off

@@ -17,6 +17,8 @@ candidate's silhouette loss is its mean over the band pixels, added to the colou
 By default (``silhouette_from grey``) the model's silhouette is not its accumulation but its rendered colour
 through the detector's own test made smooth (:func:`soft_grey`): a model trained on a black background may
 leave dark parts transparent, so its accumulation covers less than the object the detector finds in a frame.
+Both the frame's object and the model's colour are then cut at a level nearer the middle of the object's
+edges than the detector's threshold (:func:`edge_mask`): the model blurs its outline, the frame's is sharp.
 """
 
 from dataclasses import dataclass
