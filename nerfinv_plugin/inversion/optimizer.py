@@ -69,7 +69,7 @@ class OptimizerConfig:
     silhouette_weight: float = 0.25
     """Factor on the silhouette loss (the model's silhouette against the observed object mask, on a band
     about its outline: :mod:`nerfinv_plugin.inversion.silhouette`), added to the photometric loss. 0: off.
-    With ``silhouette_from grey`` cut at ``silhouette_edge 0.35``, 0.25 ended 40% of the frames of the unseen
+    With ``silhouette_from grey`` cut at ``silhouette_edge 0.35``, 0.25 ended 33% of the frames of the unseen
     seed-23 counts (ten seeds) under 5 degrees against 20% off, and 108 of 120 frames of user-path.sh's model
     over three seeds against 98 (docs/benchmarks.md, session 15)."""
     silhouette_from: Literal["accumulation", "grey"] = "grey"
