@@ -92,8 +92,8 @@ class BandPixels:
     weight: float
     """Factor on the mean silhouette loss, added to the colour loss."""
     threshold: float | None = None
-    """Grey level (0-255) above which the detector called a pixel object: the model's silhouette is then its
-    colour through :func:`soft_grey`. None: its accumulation."""
+    """Grey level (0-255) the frame's object was cut at (:func:`edge_mask`): the model's silhouette is then its
+    colour through :func:`soft_grey` about the same level. None: its accumulation."""
     softness: float = 4.0
     """:func:`soft_grey`'s scale, grey levels."""
 
