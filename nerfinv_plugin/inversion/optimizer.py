@@ -75,8 +75,8 @@ class OptimizerConfig:
     silhouette_from: Literal["accumulation", "grey"] = "grey"
     """What the model's silhouette is. accumulation: its opacity along each ray. grey: its rendered colour
     as the detector reads a frame (the maximum over channels), through a sigmoid centred on the grey level
-    that frame's object was cut at (``silhouette_edge``), ``silhouette_softness`` levels wide; where the mask came from the
-    user (no grey level) the accumulation. A model trained on a black background may leave its dark parts
+    that frame's object was cut at (``silhouette_edge``), ``silhouette_softness`` levels wide; where the mask
+    came from the user (no grey level) the accumulation. A model trained on a black background may leave its dark parts
     transparent, since black there costs nothing: its accumulation is then smaller than the object the
     detector finds, and the term pulls candidates nearer than the truth (docs/benchmarks.md)."""
     silhouette_edge: float = 0.35
