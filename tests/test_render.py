@@ -9,6 +9,7 @@ from frozen_depths import frozen_sample_depths
 from scipy.spatial.transform import Rotation
 
 from nerfinv_plugin.data.images import read_rgb_over_black
+from nerfinv_plugin.inversion.optimizer import candidate_losses
 from nerfinv_plugin.model.evaluate import psnr
 from nerfinv_plugin.model.gradients import keep_gradients
 from nerfinv_plugin.model.loading import load_model
@@ -130,6 +131,31 @@ def test_batch_of_candidates_equals_single_renders_and_chunking_changes_nothing(
         # 360 values with one torch thread); a mixed-up candidate would be off by about 0.1
         torch.testing.assert_close(single.rgb[0], batched.rgb[i].detach(), rtol=1e-5, atol=1e-5)
     assert batched.rgb.shape == (4, 120, 3) and batched.accumulation.shape == (4, 120, 1)
+
+
+def test_candidate_losses_back_propagate_chunk_by_chunk(toy):
+    """The optimizer's losses back-propagate one chunk at a time (memory bounded by a chunk): with chunks cut
+    across candidates the losses and the pose gradients are those of one chunk. Every chunk's graph starts in
+    the one ray bundle of all rays; before that was kept, a second chunk's backward raised (any run whose
+    candidates x pixels exceeded the chunk, on CPU and CUDA alike)."""
+    loaded, data = toy
+    c2w_data, intrinsics, _ = _view(data, "test", 1)
+    c2w0 = torch.as_tensor(loaded.dataset_to_model(c2w_data), dtype=torch.float32)
+    rng = np.random.default_rng(1)
+    poses = torch.stack([_perturbed(c2w0, torch.as_tensor(rng.normal(0, 0.03, 6), dtype=torch.float32))[0]
+                         for _ in range(3)])
+    pixels = _object_pixels(loaded, c2w0.numpy(), intrinsics, 50)
+    observed = render(loaded, c2w0[None], intrinsics, pixels).rgb[0].detach()  # the truth's colours
+    results = []
+    for chunk in (150, 40):
+        leaf = poses.clone().requires_grad_(True)
+        losses = candidate_losses(loaded, leaf, intrinsics, pixels, observed, "mse", True,
+                                  RenderSettings(chunk_rays=chunk))
+        results.append((losses, leaf.grad))
+    (whole, grad_whole), (chunked, grad_chunked) = results
+    torch.testing.assert_close(chunked, whole, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(grad_chunked, grad_whole, rtol=1e-4, atol=1e-6)
+    assert grad_whole.abs().max() > 1e-4
 
 
 def test_colour_and_accumulation_are_nerfstudios_own_outputs_and_gradients(toy):

@@ -186,13 +186,16 @@ def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, p
                 if out.accumulation is None and band.threshold is None:
                     raise ValueError(f"{type(loaded.model).__name__} gives no accumulation output: the silhouette "
                                      "loss cannot be used with it (set --optimizer.silhouette-weight 0)")
-                soft = out.accumulation if band.threshold is None else soft_grey(out.rgb, band.threshold,
-                                                                                  band.softness)
-                per_ray = per_ray + silhouette_per_ray(soft, inside[part]) * band_scale[part]
+                per_ray = per_ray + silhouette_per_ray(
+                    out.accumulation if band.threshold is None else soft_grey(out.rgb, band.threshold, band.softness),
+                    inside[part]) * band_scale[part]
             if backward and per_ray.requires_grad:  # rays that missed the target carry no gradient
-                # Non-finite rays must not poison the others' gradients; their candidates get dropped.
-                torch.where(torch.isfinite(per_ray), per_ray, 0.0).sum().backward()
+                # Non-finite rays must not poison the others' gradients; their candidates get dropped. Every
+                # chunk's graph starts in the one ray bundle built from c2w for all rays: it is kept for the
+                # next chunk's backward (retain_graph), and the chunk's own part goes with ``out`` below.
+                torch.where(torch.isfinite(per_ray), per_ray, 0.0).sum().backward(retain_graph=True)
             totals.index_add_(0, candidate_of_ray[part], per_ray.detach())
+            del out, per_ray  # before the next chunk renders: one chunk's graph in memory at a time
     return totals
 
 
