@@ -18,7 +18,7 @@ import pytest
 import torch
 import tyro
 
-from nerfinv_plugin.bench.gpu_check import compare_devices
+from nerfinv_plugin.bench.gpu_check import compare_devices, render_with_gradient
 from nerfinv_plugin.bench.observed import read_observed
 from nerfinv_plugin.bench.perf import compare_loops, profile_ours, sampler_as_nerfstudio_loads_it, sweep
 from nerfinv_plugin.bench.recall import bank_benchmark, bank_recall
@@ -339,6 +339,11 @@ def test_the_device_check_agrees_on_one_device_and_catches_another_model(loaded,
     """``ns-invert-bench gpu``'s comparison, run CPU against CPU: the same checkpoint agrees exactly; a copy
     whose field's hash table is scaled does not. Where there is no CUDA the command says so (exit 2)."""
     sampling = Sampling(0.6, (8, 4), 8)
+    start, pixels = observed.starts(3, 5.0, 15.0, 0.01, 0), torch.tensor([[20, 30], [25, 40], [30, 45]])
+    first = render_with_gradient(loaded, start, observed, pixels, sampling)[2]
+    again = render_with_gradient(loaded, start, observed, pixels, sampling)[2]
+    assert not start.requires_grad and np.abs(first).max() > 0  # the caller's poses stay as they were
+    assert np.array_equal(first, again)  # no gradient carried over from the first call
     same = compare_devices(loaded, load_model(toy_run[0], device="cpu"), observed, 3, 64, sampling)
     assert same.agrees and same.gradient_scale > 1e-4
     assert (same.rgb_max_abs, same.accumulation_max_abs, same.gradient_max_rel) == (0.0, 0.0, 0.0)

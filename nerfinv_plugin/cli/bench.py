@@ -23,7 +23,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from tyro.conf import Positional, UseAppendAction, arg
 
-from nerfinv_plugin.bench.gpu_check import bank_throughput, compare_devices
+from nerfinv_plugin.bench.gpu_check import GpuCheck, gpu_check
 from nerfinv_plugin.bench.grid import (
     Bench,
     Cell,
@@ -387,25 +387,11 @@ class GpuBench(SpeedBench):
         console = Console(soft_wrap=True)
         if self.threads is not None:
             torch.set_num_threads(self.threads)
-        cpu, gpu = load_model(self.load_config, device="cpu"), load_model(self.load_config, device="cuda")
-        observed = read_observed(cpu, self.sequence, self.frame, self.target, self.resolution)
-        console.print(f"{self.header(gpu)} ({torch.cuda.get_device_name(gpu.device)}); frame {observed.name}")
-        agreement = compare_devices(cpu, gpu, observed, self.candidates, self.pixels, self.render, self.seed)
-        console.print(f"CUDA against CPU on {agreement.rays:,} rays: colour {agreement.rgb_max_abs:.2e}, accumulation "
-                      f"{agreement.accumulation_max_abs:.2e} (max abs), pose gradient {agreement.gradient_max_rel:.2e} "
-                      f"of its largest entry {agreement.gradient_scale:.3g}: "
-                      + ("[bold green]agree[/bold green]" if agreement.agrees else "[bold red]DISAGREE[/bold red]"))
-        if not agreement.agrees:
+        check = GpuCheck(self.load_config, self.sequence, self.frame, self.resolution, self.target, self.candidates,
+                         self.pixels, self.iterations, self.seed, self.render)
+        settings = f"{torch.get_num_threads()} CPU torch threads, {datetime.now():%Y-%m-%d %H:%M}"
+        if not gpu_check(check, console, settings):
             raise SystemExit(1)
-        compared = compare_loops(gpu, observed, self.candidates, self.pixels, self.iterations, self.render, self.seed)
-        bank_s, bank_rays = bank_throughput(gpu, observed, self.render)
-        thesis, ours = compared.thesis, compared.ours
-        console.print("| device | thesis s / iteration | nerfinv s / iteration | ratio | nerfinv rays / s | "
-                      "peak memory, thesis / ours | bank (642 views, forward only) |\n|---|---|---|---|---|---|---|")
-        console.print(f"| {torch.cuda.get_device_name(gpu.device)} | {thesis.per_iteration:.3f} | "
-                      f"{ours.per_iteration:.4f} | {compared.ratio:.2f}x | {ours.rays_per_second:,.0f} | "
-                      f"{thesis.peak_memory_bytes / MB:,.0f} / {ours.peak_memory_bytes / MB:,.0f} MB | "
-                      f"{bank_s:.1f} s, {bank_rays:,.0f} rays/s |")
 
 
 @dataclass(kw_only=True)
