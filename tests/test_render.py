@@ -107,13 +107,19 @@ def test_rendering_a_training_pose_reproduces_the_image(toy):
     assert psnr(rendered, observed) > max(24.0, black + 6.0)
 
 
-def test_batch_of_candidates_equals_single_renders_and_chunking_changes_nothing(toy):
+def _candidates_about_test_view(toy, count: int, seed: int):
+    """``(loaded, the test view's pose [4, 4], its intrinsics, count poses about it [count, 4, 4])``, model frame."""
     loaded, data = toy
     c2w_data, intrinsics, _ = _view(data, "test", 1)
     c2w0 = torch.as_tensor(loaded.dataset_to_model(c2w_data), dtype=torch.float32)
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     poses = torch.stack([_perturbed(c2w0, torch.as_tensor(rng.normal(0, 0.03, 6), dtype=torch.float32))[0]
-                         for _ in range(4)])
+                         for _ in range(count)])
+    return loaded, c2w0, intrinsics, poses
+
+
+def test_batch_of_candidates_equals_single_renders_and_chunking_changes_nothing(toy):
+    loaded, c2w0, intrinsics, poses = _candidates_about_test_view(toy, 4, seed=0)
     pixels = _object_pixels(loaded, c2w0.numpy(), intrinsics, 120)
     poses.requires_grad_(True)
     batched = render(loaded, poses, intrinsics, pixels)
@@ -138,12 +144,7 @@ def test_candidate_losses_back_propagate_chunk_by_chunk(toy):
     across candidates the losses and the pose gradients are those of one chunk. Every chunk's graph starts in
     the one ray bundle of all rays; before that was kept, a second chunk's backward raised (any run whose
     candidates x pixels exceeded the chunk, on CPU and CUDA alike)."""
-    loaded, data = toy
-    c2w_data, intrinsics, _ = _view(data, "test", 1)
-    c2w0 = torch.as_tensor(loaded.dataset_to_model(c2w_data), dtype=torch.float32)
-    rng = np.random.default_rng(1)
-    poses = torch.stack([_perturbed(c2w0, torch.as_tensor(rng.normal(0, 0.03, 6), dtype=torch.float32))[0]
-                         for _ in range(3)])
+    loaded, c2w0, intrinsics, poses = _candidates_about_test_view(toy, 3, seed=1)
     pixels = _object_pixels(loaded, c2w0.numpy(), intrinsics, 50)
     observed = render(loaded, c2w0[None], intrinsics, pixels).rgb[0].detach()  # the truth's colours
     results = []
