@@ -7,13 +7,19 @@ import socket
 import numpy as np
 import pytest
 import torch
+from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.field_components.encodings import HashEncoding
 from torchmetrics.image import lpip
 
 from nerfinv_plugin.model.evaluate import evaluate_split, psnr
 from nerfinv_plugin.model.fused_hash import fused_hash_forward
 from nerfinv_plugin.model.loading import load_model
-from nerfinv_plugin.model.nerfacto_tiny import LPIPSUnavailable, lpips_disabled
+from nerfinv_plugin.model.nerfacto_tiny import (
+    LPIPSUnavailable,
+    NerfactoTinyModel,
+    NerfactoTinyModelConfig,
+    lpips_disabled,
+)
 from nerfinv_plugin.model.training import train_nerfacto_tiny
 from nerfinv_plugin.synth.datasets import TrainingSetSpec, write_training_set
 
@@ -76,3 +82,44 @@ def test_tiny_model_reaches_psnr_floor_on_held_out_views(toy_run):
     black = float(np.mean([psnr(np.zeros_like(s.observed), s.observed) for s in scores]))
     assert mean >= PSNR_FLOOR_DB, f"held-out PSNR {mean:.2f} dB < {PSNR_FLOOR_DB} dB"
     assert mean >= black + 6.0, f"held-out PSNR {mean:.2f} dB barely beats an empty render ({black:.2f} dB)"
+
+
+def _tiny_model(seed: int = 0) -> NerfactoTinyModel:
+    torch.manual_seed(seed)
+    config = NerfactoTinyModelConfig()
+    return config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
+                        num_train_data=4).eval()
+
+
+def test_densities_follow_the_scene_scale_and_old_checkpoints_keep_theirs():
+    """The same weights fitted to the same cameras at two scales (metres, and nerfstudio-data's unit cube)
+    give the same optical depth along corresponding rays: density times length does not depend on the scale.
+    A state dict from before densities followed the unit (no ``density_unit``) loads with its densities per
+    model unit, as it was trained."""
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(20, 3))
+    centres = 5.0 * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    scale = 0.188
+    metric, cube = _tiny_model(), _tiny_model()
+    cube.load_state_dict(metric.state_dict())
+    fit_metric = metric.fit_to_cameras(centres, 0.2)
+    fit_cube = cube.fit_to_cameras(centres * scale, 0.2)
+    assert fit_cube.unit == pytest.approx(scale * fit_metric.unit)
+    points = torch.as_tensor(rng.uniform(-0.5, 0.5, (256, 3)), dtype=torch.float32)
+    with torch.no_grad():
+        metric_density = metric.field.density_fn(points)
+        cube_density = cube.field.density_fn(points * scale)
+        proposal_metric = metric.proposal_networks[0].density_fn(points)
+        proposal_cube = cube.proposal_networks[0].density_fn(points * scale)
+    assert metric_density.abs().max() > 0
+    torch.testing.assert_close(cube_density * scale, metric_density, rtol=1e-4, atol=1e-7)
+    torch.testing.assert_close(proposal_cube * scale, proposal_metric, rtol=1e-4, atol=1e-7)
+
+    reloaded = _tiny_model(seed=1)
+    reloaded.load_state_dict(cube.state_dict())  # a checkpoint trained with densities per unit
+    with torch.no_grad():
+        torch.testing.assert_close(reloaded.field.density_fn(points * scale), cube_density)
+    old = {k: v for k, v in cube.state_dict().items() if not k.endswith("density_unit")}
+    before = _tiny_model(seed=2)
+    before.load_state_dict(old)
+    assert all(f.average_init_density == pytest.approx(0.01) for f in (before.field, *before.proposal_networks))

@@ -7,9 +7,9 @@ machine without internet needs:
 - a data manager that caches images in-process instead of spawning loader worker processes;
 - the same hash-grid function computed by a faster torch forward (``fused_hash``);
 - smaller hash tables, MLPs and sample counts, and proposal sampling between near and far planes;
-- planes and the scale of the scene contraction fitted to the training cameras (so that the model learns
-  the same scene whatever scale the dataparser gives it: metres for blender-data, a unit cube of cameras
-  for nerfstudio-data), kept in the checkpoint;
+- planes and the scale of the scene contraction fitted to the training cameras, and densities measured per
+  that scale (so that the model learns the same scene whatever scale the dataparser gives it: metres for
+  blender-data, a unit cube of cameras for nerfstudio-data), kept in the checkpoint;
 - a random background behind RGBA training images and black behind RGB ones (a random background behind
   an image without alpha can only be matched by filling space with black: the model then renders nothing);
 - the camera optimizer off so that the model frame stays the ground-truth frame, and evaluation/viewer
@@ -99,11 +99,15 @@ class FittedNearFar(_KeepsMissingBuffers, NearFarCollider):
 
 class ScaledContraction(_KeepsMissingBuffers, SceneContraction):
     """nerfacto's contraction of positions measured in ``unit``s: the cube that the hash grids resolve
-    finely (|x| < unit) holds the object whatever scale the dataparser put the scene at."""
+    finely (|x| < unit) holds the object whatever scale the dataparser put the scene at.
+
+    ``density_unit`` is the length the fields' densities are measured per: the contraction unit for models
+    trained since densities follow it, 1 (model units) for checkpoints written before, which lack it."""
 
     def __init__(self, unit: float = 1.0) -> None:
         super().__init__(order=float("inf"))
         self.register_buffer("unit", torch.tensor(float(unit)))
+        self.register_buffer("density_unit", torch.tensor(1.0))
 
     def forward(self, positions: Tensor) -> Tensor:
         return super().forward(positions / self.unit)
@@ -145,6 +149,18 @@ class NerfactoTinyModel(NerfactoModel):
         contraction = ScaledContraction(c.contraction_unit if c.contraction_unit is not None else 1.0)
         for field_ in (self.field, *self.proposal_networks):
             field_.spatial_distortion = contraction
+        self.register_load_state_dict_post_hook(lambda model, _: model.scale_densities())
+
+    def scale_densities(self) -> None:
+        """Measure the fields' densities per ``density_unit`` (the contraction unit): a field's output is
+        multiplied by ``average_init_density / density_unit``, so that the same network outputs give the same
+        opacity over the object whatever scale the dataparser gave the scene. With densities per model unit,
+        nerfstudio-data's unit cube of cameras (the spacecraft's unit 0.17 model units against 0.87 m through
+        Blender) left every density six times too thin for the same outputs, from the first step: 3.1 dB lost
+        on held-out views after 1,100 iterations (docs/benchmarks.md)."""
+        contraction = self.field.spatial_distortion
+        for field_ in (self.field, *self.proposal_networks):
+            field_.average_init_density = self.config.average_init_density / float(contraction.density_unit)
 
     def fit_to_cameras(self, centres: np.ndarray, half_fov_rad: float) -> CameraFit:
         """Set the planes and the contraction unit the config leaves unset from the training cameras."""
@@ -155,6 +171,8 @@ class NerfactoTinyModel(NerfactoModel):
                         fit.unit if c.contraction_unit is None else c.contraction_unit)
         self.collider.fit(fit.near, fit.far)
         self.field.spatial_distortion.unit.fill_(fit.unit)
+        self.field.spatial_distortion.density_unit.fill_(fit.unit)
+        self.scale_densities()
         return fit
 
     def get_loss_dict(self, outputs: dict, batch: dict, metrics_dict: dict | None = None) -> dict:
@@ -240,6 +258,8 @@ class NerfactoTinyModelConfig(NerfactoModelConfig):
     proposal_warmup: int = 500
     use_appearance_embedding: bool = False
     average_init_density: float = 0.01
+    """Scale of the fields' densities, per contraction unit (nerfacto: per model unit), so that a scene
+    gets the same opacities at any scale the dataparser puts it at."""
     eval_num_rays_per_chunk: int = 4096
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
 
