@@ -28,6 +28,8 @@ def test_a_model_trained_on_camera_images_learns_as_the_blender_path_does(toy_rg
     # 3.5, 2.6 and 4.6 dB (training is not bit-reproducible: thread counts, data loader workers and the load
     # on the machine change it), so the test guards against a model that learns nothing, with room for that
     # spread; the targets (8 dB above all-black, within 1 dB of the Blender path) are measured in
-    # docs/benchmarks.md, not here.
-    assert rgb_model.margin_db > 5.0, rgb_model
-    assert rgb_model.mean_psnr > blender_model.mean_psnr - 5.5, (rgb_model.mean_psnr, blender_model.mean_psnr)
+    # docs/benchmarks.md, not here. Since densities are measured per contraction unit (2026-12-04; before, the
+    # last training of the old code gave a margin of 7.00 dB and a gap of 3.9 dB): margin 9.42 dB, gap 0.58 dB,
+    # so the bounds now catch a return of the unit-cube gap while leaving room for the spread.
+    assert rgb_model.margin_db > 7.0, rgb_model
+    assert rgb_model.mean_psnr > blender_model.mean_psnr - 2.5, (rgb_model.mean_psnr, blender_model.mean_psnr)
