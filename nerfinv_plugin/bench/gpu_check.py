@@ -17,7 +17,7 @@ import torch
 from rich.console import Console
 
 from nerfinv_plugin.bench.observed import ObservedFrame, read_observed
-from nerfinv_plugin.bench.perf import compare_loops
+from nerfinv_plugin.bench.perf import MB, compare_loops, model_header
 from nerfinv_plugin.bench.sampling import Sampling
 from nerfinv_plugin.initialization.bank import BankConfig, render_bank
 from nerfinv_plugin.initialization.extent import framed_radius
@@ -32,7 +32,6 @@ RGB_ATOL = 1e-3
 depths placed by searchsorted on densities that differ in their last bits."""
 GRADIENT_RTOL = 1e-2
 """The pose gradients may differ by this fraction of their largest entry."""
-MB = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -120,18 +119,17 @@ class GpuCheck:
     sampling: Sampling = Sampling()
 
 
-def gpu_check(check: GpuCheck, console: Console, header: str) -> bool:
+def gpu_check(check: GpuCheck, console: Console) -> bool:
     """Load ``check.load_config`` on the CPU and on CUDA, compare their renders and pose gradients, and, when
     they agree, print the GPU row of the throughput table (perf's comparison and the view bank's forward-only
-    build on the GPU), after ``header`` (the machine's settings and the date). Returns whether the devices agreed.
+    build on the GPU). Returns whether the devices agreed.
 
     Kept apart from the bench command's front end, whose imports (the synthetic-scene renderer among them)
     a GPU machine need not have."""
     cpu, gpu = load_model(check.load_config, device="cpu"), load_model(check.load_config, device="cuda")
     observed = read_observed(cpu, check.sequence, check.frame, check.target, check.resolution)
     name = torch.cuda.get_device_name(gpu.device)
-    console.print(f"model {gpu.config.method_name} step {gpu.step} ({check.load_config}) on {gpu.device} ({name}), "
-                  f"{header}; frame {observed.name}")
+    console.print(f"{model_header(gpu, check.load_config)} ({name}); frame {observed.name}")
     agreement = compare_devices(cpu, gpu, observed, check.candidates, check.pixels, check.sampling, check.seed)
     console.print(f"CUDA against CPU on {agreement.rays:,} rays: colour {agreement.rgb_max_abs:.2e}, accumulation "
                   f"{agreement.accumulation_max_abs:.2e} (max abs), pose gradient {agreement.gradient_max_rel:.2e} "

@@ -43,6 +43,15 @@ START_MIN_DEG, START_MAX_DEG, START_SHIFT_M = 15.0, 20.0, 0.05
 """Where the throughput benchmarks start: iNeRF's protocol, 15-20 degrees and 5 cm off the truth."""
 
 
+MB = 1 << 20
+
+
+def model_header(loaded: LoadedModel, load_config: str | Path) -> str:
+    """What a measured table needs next to it: the model, the machine's settings and the date."""
+    return (f"model {loaded.config.method_name} step {loaded.step} ({load_config}) on {loaded.device}, "
+            f"{torch.get_num_threads()} torch threads, {datetime.now():%Y-%m-%d %H:%M}")
+
+
 @dataclass(frozen=True)
 class Timing:
     seconds: float

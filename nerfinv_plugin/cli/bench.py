@@ -39,7 +39,7 @@ from nerfinv_plugin.bench.grid import (
 )
 from nerfinv_plugin.bench.lightbox import by_trajectory, domain_gaps
 from nerfinv_plugin.bench.observed import read_observed
-from nerfinv_plugin.bench.perf import compare_loops, latency_rows, latency_runs, profile_ours, sweep
+from nerfinv_plugin.bench.perf import MB, compare_loops, latency_rows, latency_runs, model_header, profile_ours, sweep
 from nerfinv_plugin.bench.ray_runner import RayRunner
 from nerfinv_plugin.bench.recall import bank_benchmark
 from nerfinv_plugin.bench.render_speed import render_problem, render_speed
@@ -60,8 +60,6 @@ from nerfinv_plugin.results.atomic import write_atomic
 from nerfinv_plugin.synth.scenes import SceneName
 from nerfinv_plugin.synth.trajectories import TrajectoryKind
 from nerfinv_plugin.viewer.browser import BrowserError
-
-MB = 1 << 20
 
 
 @dataclass
@@ -204,8 +202,7 @@ class ModelBench:
 
     def header(self, loaded: LoadedModel) -> str:
         """What a measured table needs next to it: the model, the machine's settings and the date."""
-        return (f"model {loaded.config.method_name} step {loaded.step} ({self.load_config}) on {loaded.device}, "
-                f"{torch.get_num_threads()} torch threads, {datetime.now():%Y-%m-%d %H:%M}")
+        return model_header(loaded, self.load_config)
 
 
 @dataclass(kw_only=True)
@@ -389,8 +386,7 @@ class GpuBench(SpeedBench):
             torch.set_num_threads(self.threads)
         check = GpuCheck(self.load_config, self.sequence, self.frame, self.resolution, self.target, self.candidates,
                          self.pixels, self.iterations, self.seed, self.render)
-        settings = f"{torch.get_num_threads()} CPU torch threads, {datetime.now():%Y-%m-%d %H:%M}"
-        if not gpu_check(check, console, settings):
+        if not gpu_check(check, console):
             raise SystemExit(1)
 
 
