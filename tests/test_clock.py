@@ -195,6 +195,22 @@ def test_the_latency_benchmark_runs_ns_invert_with_its_options():
     assert (str(config.output_dir), config.name, str(config.sequence)) == ("o", "latency", "shirt/roe1")
 
 
+def test_the_latency_benchmark_keeps_ns_inverts_own_counts_unless_given(tmp_path):
+    """Unset, the candidates, pixels and iterations of the latency runs are ns-invert's (or the preset's): the
+    bare command is what the latency target is about; the thesis' 15 x 256 x 60 is the loops' benchmark."""
+    preset = tmp_path / "fast.yml"
+    preset.write_text("pixels: 100\noptimizer: {iterations: 11}\n")
+    args = ["perf", "--load-config", "run/config.yml", "--sequence", "shirt/roe1", "--latency"]
+    bare = tyro.cli(Commands, args=args).latency_config()
+    default = InvertConfig()
+    assert (bare.starts.count, bare.pixels, bare.optimizer.iterations) == (
+        default.starts.count, default.pixels, default.optimizer.iterations)
+    preset_config = tyro.cli(Commands, args=args + ["--preset", str(preset)]).latency_config()
+    assert (preset_config.pixels, preset_config.optimizer.iterations) == (100, 11)
+    given = tyro.cli(Commands, args=args + ["--preset", str(preset), "--pixels", "64"]).latency_config()
+    assert given.pixels == 64
+
+
 @pytest.fixture(scope="module")
 def shirt(toy_run, tmp_path_factory) -> Path:
     """A SHIRT root with a 6-frame roe1 trajectory of the toy scene (metadata.json: 5 s apart)."""

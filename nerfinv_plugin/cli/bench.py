@@ -230,12 +230,17 @@ class PerfBench(SpeedBench):
 
     sequence: str
     """A sequence with ground truth (ns-invert's --sequence); the starts are placed around its frame."""
+    candidates: int | None = None
+    """Candidates per iteration. Unset: 15 (the thesis); with --latency, ns-invert's (or --preset's) starts."""
+    pixels: int | None = None
+    """Pixels per candidate and iteration. Unset: 256 (the thesis); with --latency, ns-invert's (or
+    --preset's)."""
     frame: int = 0
     """Which frame of the sequence to invert."""
     resolution: tuple[int, int] | None = None
     """Working resolution WIDTH HEIGHT (default: the images' own)."""
-    iterations: int = 60
-    """Iterations per step (the thesis: 60)."""
+    iterations: int | None = None
+    """Iterations per step. Unset: 60 (the thesis); with --latency, ns-invert's (or --preset's)."""
     target: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Target centre in the dataset frame."""
     sweep: bool = False
@@ -249,8 +254,9 @@ class PerfBench(SpeedBench):
     """Run ns-invert --clock realtime over the sequence instead (a SHIRT trajectory: its frames 5 s apart),
     with the compute time measured, at each --clock-speeds, --latency-runs times: latency per frame, frames
     skipped, time to first lock, accuracy (medians over the runs). The inversion is ns-invert's (or
-    --preset's) with --candidates as --starts.count, --pixels, --iterations, --seed, --resolution, --target,
-    --device, --start and --stop; our --render options do not apply (ns-invert's own do)."""
+    --preset's), with --candidates as --starts.count, --pixels and --iterations where given, and --seed,
+    --resolution, --target, --device, --start and --stop; our --render options do not apply (ns-invert's own
+    do)."""
     clock_speeds: tuple[float, ...] = (1.0, 0.1)
     """--latency: the clock speeds to run at (0.1: a computer ten times slower)."""
     latency_runs: int = 3
@@ -269,12 +275,13 @@ class PerfBench(SpeedBench):
         if self.latency:
             self.latency_main(console)
             return
+        candidates, pixels, iterations = self.candidates or 15, self.pixels or 256, self.iterations or 60  # the thesis'
         loaded = self.load()
         observed = read_observed(loaded, self.sequence, self.frame, self.target, self.resolution)
         width, height = observed.intrinsics.width, observed.intrinsics.height
         console.print(f"{self.header(loaded)}; frame {observed.name} at {width}x{height}")
         if self.sweep:
-            points = [(n, self.pixels) for n in (1, 5, 15, 40, 80)] + [(self.candidates, p) for p in (64, 1024, 4096)]
+            points = [(n, pixels) for n in (1, 5, 15, 40, 80)] + [(candidates, p) for p in (64, 1024, 4096)]
             swept = sweep(loaded, observed, points, self.sweep_iterations, self.render, self.seed)
             console.print(f"chunk {swept.chunk_rays} rays, memory budget {swept.memory_budget_bytes / MB:,.0f} MB")
             console.print("| candidates | pixels | rays / iteration | s / iteration | us / ray | peak memory |\n"
@@ -285,17 +292,16 @@ class PerfBench(SpeedBench):
                               f"{1e6 * t.per_iteration / rays:.1f} | {t.peak_memory_bytes / MB:,.0f} MB |")
             return
         if self.profile:
-            found = profile_ours(loaded, observed, self.candidates, self.pixels, self.render, seed=self.seed)
-            console.print(f"{self.candidates} candidates x {self.pixels} pixels x {found.iterations} iterations: "
+            found = profile_ours(loaded, observed, candidates, pixels, self.render, seed=self.seed)
+            console.print(f"{candidates} candidates x {pixels} pixels x {found.iterations} iterations: "
                           f"{found.cpu_s:.2f} s of CPU time in operators")
             console.print("| operator | self CPU time | share | calls |\n|---|---|---|---|")
             for op in found.operators:
                 console.print(f"| {op.name} | {op.self_cpu_s:.3f} s | {100 * op.self_cpu_s / found.cpu_s:.1f}% | "
                               f"{op.calls} |")
             return
-        compared = compare_loops(loaded, observed, self.candidates, self.pixels, self.iterations, self.render,
-                                 self.seed)
-        console.print(f"{self.candidates} candidates x {self.pixels} pixels x {self.iterations} iterations")
+        compared = compare_loops(loaded, observed, candidates, pixels, iterations, self.render, self.seed)
+        console.print(f"{candidates} candidates x {pixels} pixels x {iterations} iterations")
         console.print("| way | s / iteration | rays / s (fwd+bwd) | peak memory | first loss (mean) |\n"
                       "|---|---|---|---|---|")
         for name, t in (("thesis (per-candidate patched get_outputs_for_camera_ray_bundle, trainable weights, "
@@ -314,9 +320,11 @@ class PerfBench(SpeedBench):
         config = dataclasses.replace(
             base, load_config=self.load_config, sequence=self.sequence, output_dir=self.out, name="latency",
             device=self.device, seed=self.seed, target=self.target, start=self.start, stop=self.stop,
-            resolution=self.resolution if self.resolution is not None else base.resolution, pixels=self.pixels,
-            starts=dataclasses.replace(base.starts, count=self.candidates),
-            optimizer=dataclasses.replace(base.optimizer, iterations=self.iterations), preset=self.preset)
+            resolution=self.resolution if self.resolution is not None else base.resolution,
+            pixels=self.pixels or base.pixels,
+            starts=dataclasses.replace(base.starts, count=self.candidates or base.starts.count),
+            optimizer=dataclasses.replace(base.optimizer, iterations=self.iterations or base.optimizer.iterations),
+            preset=self.preset)
         validate(config)
         return config
 
@@ -326,7 +334,8 @@ class PerfBench(SpeedBench):
         config = self.latency_config()
         load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
         console.print(f"ns-invert --clock realtime on {self.sequence} (frames {self.start}:{self.stop or ''}), "
-                      f"{self.candidates} candidates x {self.pixels} pixels x {self.iterations} iterations, "
+                      f"{config.starts.count} starts, {config.pixels} pixels x {config.optimizer.iterations} "
+                      "iterations, "
                       f"{torch.get_num_threads()} torch threads, load average {load} before, "
                       f"{datetime.now():%Y-%m-%d %H:%M}")
 
