@@ -168,8 +168,10 @@ class InvertConfig:
     """Where each iteration's pixels are drawn: object: in the box of the object found in the frame, widened
     by a quarter of its size on every side (as the ranking pixels; the whole image where no object is
     found); image: anywhere (the thesis). Gauss-Newton always draws about the object."""
-    pixels: int = 256
-    """Pixels rendered per candidate and iteration."""
+    pixels: int = 128
+    """Pixels rendered per candidate and iteration (besides the silhouette's band pixels). 128 since
+    2026-12-04 (256 before): on unseen seed-23 scenes 39 of 45 runs ended under 5 degrees against 37, at 0.70x
+    the time per frame (docs/benchmarks.md, session 17); the presets keep the thesis' 256."""
     eval_pixels: int = 1024
     """Fixed random pixels per frame on which candidates are ranked."""
     rank_region: Region = "object"
