@@ -193,7 +193,8 @@ torch::Tensor density_forward(torch::Tensor positions, double unit, torch::Tenso
   int64_t width = grid.levels * grid.f;
   // Each layer's weights transposed to [in][out]: the product then adds one input times a row of outputs at
   // a time, a loop over outputs the compiler vectorizes. The dot product of [out][in] is a float reduction,
-  // which it may not reorder, so it ran one multiply-add after the other (most of the kernel's time).
+  // which it may not reorder, so it ran one multiply-add after the other. The hash gathers are most of the
+  // kernel's time either way (measured: 1.1-1.3x on the whole kernel).
   std::vector<torch::Tensor> transposed;
   std::vector<const float*> w, b;
   std::vector<int64_t> outs, ins;
