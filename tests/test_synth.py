@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from nerfinv_plugin.geometry.frames import look_at_c2w_opencv
 from nerfinv_plugin.synth.datasets import (
     SPEEDPLUS_DIST_COEFFS,
     TrainingSetSpec,
@@ -18,7 +19,7 @@ from nerfinv_plugin.synth.datasets import (
     write_training_set,
 )
 from nerfinv_plugin.synth.render import distort_image, distortion_padding, render_view
-from nerfinv_plugin.synth.scenes import TANGO_KEYPOINTS, build_scene
+from nerfinv_plugin.synth.scenes import SATELLITE_SPAN_M, SCENE_CENTRES, TANGO_KEYPOINTS, build_scene
 from nerfinv_plugin.synth.trajectories import TrajectorySpec
 
 SPECS = [TrajectorySpec(kind="roe1", num_frames=4), TrajectorySpec(kind="roe2", num_frames=4)]
@@ -162,6 +163,26 @@ def test_training_set_formats_and_determinism(tmp_path):
         assert (tmp_path / "a" / (frame["file_path"][2:] + ".png")).is_file()
     same = [(tmp_path / n / "train" / "r_000.png").read_bytes() for n in ("a", "b", "c")]
     assert same[0] == same[1] and same[0] != same[2]
+
+
+def test_satellite_wings_span_their_length_and_are_thinner_than_a_pixel_edge_on():
+    """The thin-parts satellite at the nearest training range (4.5 m) on the training camera: with the wings
+    across the image's short side they span 1.7 m (the analytic projection, within 2 pixels) and stay inside
+    the frame; seen edge-on (camera in the wings' plane) they cover under a pixel's height."""
+    camera = speedplus_like_camera(120, 75)
+    scene = mi.load_dict(build_scene("satellite", 0))
+    centre = SCENE_CENTRES["satellite"]
+    across = look_at_c2w_opencv(centre + [0.0, 0.0, 4.5], centre, up=np.array([0.0, 1.0, 0.0]))
+    _, alpha = render_view(scene, across, camera, spp=16, seed=0)
+    rows = np.flatnonzero((alpha > 0.3).any(1))
+    span_px = camera.focal * SATELLITE_SPAN_M / (4.5 + 0.1 - 0.055)   # the wings' near face is at z = 0.055
+    assert rows[0] > 0 and rows[-1] < 74 and abs(rows[-1] + 1 - rows[0] - span_px) < 2, (rows[[0, -1]], span_px)
+
+    edge_on = look_at_c2w_opencv(centre + [4.5, 0.0, -0.05], centre + [0.0, 0.0, -0.05])
+    _, alpha = render_view(scene, edge_on, camera, spp=64, seed=0)
+    columns = np.abs(np.arange(120) - camera.cx) * 4.5 / camera.focal > 0.5      # beyond the bus, yokes and whip
+    wing_rows = alpha[:, columns]
+    assert wing_rows.max() > 0.05 and wing_rows.sum(0).max() < 1.0, wing_rows.sum(0).max()
 
 
 def test_cli_help_documents_every_option():

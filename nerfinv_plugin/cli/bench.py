@@ -606,7 +606,7 @@ class LightboxBench:
     out: Path
     """Output folder."""
     scene: SceneName = "tango"
-    """tango: the spacecraft; toy: the tabletop object."""
+    """tango: the spacecraft; toy: the tabletop object; satellite: the satellite with thin parts."""
     seed: int = 0
     """The generator's seed (textures, attitudes, render and camera noise)."""
     spp: int = 64

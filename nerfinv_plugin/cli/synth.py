@@ -84,7 +84,8 @@ class Synth:
     out: Path
     """Output folder; the training set goes at its top, trajectories under ``shirt/``."""
     scene: SceneName = "tango"
-    """tango: spacecraft after the public Tango geometry; toy: texture-rich asymmetric tabletop object."""
+    """tango: spacecraft after the public Tango geometry; toy: texture-rich asymmetric tabletop object;
+    satellite: thin parts (solar wings 1 cm thick, a boom, a whip antenna), 1.7 m tip to tip."""
     seed: int = 0
     """Seeds textures, view placement, trajectory attitudes and render noise."""
     spp: int = 64

@@ -1,6 +1,7 @@
-"""Mitsuba 3 scene descriptions: the Tango-like spacecraft and a texture-rich toy object.
+"""Mitsuba 3 scene descriptions: the Tango-like spacecraft, a texture-rich toy object, and a satellite with
+thin parts (solar wings seen edge-on, a boom, a whip antenna) where a small NeRF has the least margin.
 
-Both scenes live in their body frame (the world frame of every label we write), sit on a black
+All scenes live in their body frame (the world frame of every label we write), sit on a black
 background and are lit by one sun (a directional emitter fixed in the body frame, so that a NeRF trained
 on them sees consistent lighting) plus a weak, hidden ambient term that keeps shadowed faces from being
 pure black. Textures are generated from a seed, so a scene is a pure function of ``(name, seed)``.
@@ -13,7 +14,7 @@ import numpy as np
 
 mi.set_variant("scalar_rgb")
 
-SceneName = Literal["tango", "toy"]
+SceneName = Literal["tango", "toy", "satellite"]
 
 TANGO_KEYPOINTS = np.array(
     [
@@ -134,9 +135,53 @@ def toy_scene(seed: int) -> dict:
     }
 
 
+WING_THICKNESS = 0.01
+BOOM_RADIUS = 0.008
+SATELLITE_SPAN_M = 1.7
+"""Wing tip to wing tip. No part is more than 0.87 m from the scene centre, so the SPEED+ field of view
+holds the whole satellite in any attitude from the nearest training range (1.8 m across the short side at
+4.5 m)."""
+
+
+def satellite_scene(seed: int) -> dict:
+    """A small satellite made of thin parts: a foil-covered bus with two solar wings 1 cm thick on thin yokes
+    (1.7 m tip to tip, edge-on from some views), a 0.35 m boom with a magnetometer at its end, a dish and a
+    whip antenna. Few pixels show most of it, as on the intricate satellites where nerfacto-tiny's margin over
+    an all-black image was smallest (issue 12)."""
+    rng = np.random.default_rng(seed)
+    foil = {
+        "type": "blendbsdf",
+        "weight": _bitmap(_foil_weight(rng)),
+        "bsdf_0": {"type": "roughconductor", "material": "Au", "alpha": 0.3},
+        "bsdf_1": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.4, 0.15]}},
+    }
+    cells = {"type": "roughplastic", "alpha": 0.2, "diffuse_reflectance": _bitmap(_solar_cells(rng, cells=8))}
+    white = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.8, 0.8]}}
+    grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.45, 0.45, 0.5]}}
+    tip, half = SATELLITE_SPAN_M / 2, WING_THICKNESS / 2
+    shapes = {"bus": _box([-0.25, -0.25, -0.3], [0.25, 0.25, 0.3], foil)}
+    for side in (-1.0, 1.0):
+        name = "wing_minus" if side < 0 else "wing_plus"
+        inner, outer = sorted((side * 0.35, side * tip))
+        shapes[name] = _box([-0.15, inner, 0.05 - half], [0.15, outer, 0.05 + half], cells)
+        shapes[name + "_yoke"] = {"type": "cylinder", "p0": [0.0, side * 0.25, 0.05], "p1": [0.0, side * 0.35, 0.05],
+                                  "radius": BOOM_RADIUS, "bsdf": grey}
+    shapes["boom"] = {"type": "cylinder", "p0": [0.1, 0.1, 0.3], "p1": [0.1, 0.1, 0.65], "radius": BOOM_RADIUS,
+                      "bsdf": white}
+    shapes["magnetometer"] = _box([0.07, 0.07, 0.65], [0.13, 0.13, 0.71], grey)
+    dish = mi.ScalarTransform4f().translate([-0.33, 0.0, -0.05]) @ mi.ScalarTransform4f().rotate([0, 1, 0], -90) \
+        @ mi.ScalarTransform4f().scale(0.18)
+    shapes["dish"] = {"type": "disk", "to_world": dish, "bsdf": {"type": "twosided", "bsdf": white}}
+    shapes["dish_feed"] = {"type": "cylinder", "p0": [-0.25, 0.0, -0.05], "p1": [-0.33, 0.0, -0.05], "radius": 0.02,
+                           "bsdf": grey}
+    shapes["whip"] = {"type": "cylinder", "p0": [0.2, -0.2, -0.3], "p1": [0.4, -0.4, -0.5], "radius": BOOM_RADIUS,
+                      "bsdf": white}
+    return {**shapes, **_lights(ambient=0.08)}
+
+
 def build_scene(name: SceneName, seed: int) -> dict:
     """Mitsuba scene dictionary (no sensor) for ``name``; pass it to :func:`mitsuba.load_dict`."""
-    builders = {"tango": tango_scene, "toy": toy_scene}
+    builders = {"tango": tango_scene, "toy": toy_scene, "satellite": satellite_scene}
     if name not in builders:
         raise ValueError(f"unknown scene {name!r}; choose one of {sorted(builders)}")
     objects = builders[name](seed)
@@ -145,5 +190,6 @@ def build_scene(name: SceneName, seed: int) -> dict:
     return {"type": "scene", "integrator": integrator, **objects}
 
 
-SCENE_CENTRES = {"tango": np.array([0.0, 0.0, 0.16]), "toy": np.array([0.0, 0.0, 0.15])}
+SCENE_CENTRES = {"tango": np.array([0.0, 0.0, 0.16]), "toy": np.array([0.0, 0.0, 0.15]),
+                 "satellite": np.array([0.0, 0.0, 0.1])}
 """Point that training cameras look at (the middle of the object's bounding box)."""
