@@ -23,9 +23,10 @@ from nerfstudio.models.vanilla_nerf import VanillaModelConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from torchmetrics.functional.image.lpips import _NoTrainLpips
 
+from nerfinv_plugin.initialization.bank import BankConfig, bank_intrinsics, cached_bank
 from nerfinv_plugin.model.loading import ModelLoadError, load_model
 from nerfinv_plugin.model.nerfacto_tiny import lpips_disabled
-from nerfinv_plugin.model.render import Intrinsics, render
+from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, render
 from nerfinv_plugin.synth.datasets import TrainingSetSpec, write_training_set
 
 
@@ -105,12 +106,31 @@ def test_stock_nerfacto_with_lpips_weights_loads_offline(small_data, tmp_path, m
 
 
 @pytest.mark.parametrize("name", ["vanilla-nerf", "mipnerf"])
-def test_pure_torch_nerfs_render_with_pose_gradients_on_cpu(name, small_data, tmp_path):
+def test_pure_torch_nerfs_render_with_pose_gradients_and_a_view_bank_on_cpu(name, small_data, tmp_path, monkeypatch):
+    """Pose gradients, and the view bank that starts a run from nothing, on a briefly trained checkpoint
+    (these models render about 100 rays/s on a CPU, so the bank is 12 views of 8 x 8 pixels): each view is
+    the model's own render at that pose, the accumulation the fine level's (not the colour's fallback),
+    and a second call reads the cache."""
     model = VanillaModelConfig(num_coarse_samples=8, num_importance_samples=8)
     if name == "mipnerf":
         model = replace(model, _target=MipNerfModel, loss_coefficients={"rgb_loss_coarse": 0.1, "rgb_loss_fine": 1.0})
     loaded = load_model(_train(model, name, small_data, tmp_path, iterations=1), device="cpu")
     _assert_reaches_pose(_probe(loaded))
+
+    monkeypatch.setenv("NERFINV_CACHE", str(tmp_path / "cache"))
+    config = BankConfig(subdivisions=0, in_plane=4, render_px=8, crop_px=8)
+    bank, path, built = cached_bank(loaded, AS_TRAINED, np.zeros(3), 1.0, config)
+    assert built and path.is_file() and bank.rgb.shape == (12, 8, 8, 3) and bank.accumulation.shape == (12, 8, 8)
+    pixels = torch.stack(torch.meshgrid(torch.arange(8), torch.arange(8), indexing="ij"), -1).reshape(-1, 2)
+    with torch.no_grad():
+        out = render(loaded, torch.as_tensor(bank.c2w[5:6], dtype=torch.float32), bank_intrinsics(config), pixels)
+    assert out.accumulation is not None
+    expected_rgb = (out.rgb.clamp(0, 1) * 255).reshape(8, 8, 3).numpy()
+    expected_acc = (out.accumulation.clamp(0, 1) * 255).reshape(8, 8).numpy()
+    assert np.abs(bank.rgb[5] - expected_rgb).max() <= 1.0 and np.abs(bank.accumulation[5] - expected_acc).max() <= 1.0
+    assert not np.array_equal(bank.accumulation, bank.rgb.max(-1))
+    again, _, rebuilt = cached_bank(loaded, AS_TRAINED, np.zeros(3), 1.0, config)
+    assert not rebuilt and np.array_equal(again.rgb, bank.rgb)
 
 
 def _untrained_run(model_config, method_name: str, out: Path) -> Path:

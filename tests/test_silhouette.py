@@ -2,12 +2,20 @@
 against separate renders, and that the silhouette alone pulls a shifted candidate back onto the object."""
 
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 
 from nerfinv_plugin.initialization.initializer import rendered_silhouette, silhouette_iou
-from nerfinv_plugin.inversion.optimizer import OptimizerConfig, PreparedFrame, candidate_losses, optimize_candidates
+from nerfinv_plugin.inversion.optimizer import (
+    OptimizerConfig,
+    PreparedFrame,
+    candidate_losses,
+    optimize_candidates,
+    rank,
+)
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.silhouette import (
     EVAL_BAND_PIXELS,
@@ -167,3 +175,28 @@ def test_the_silhouette_alone_pulls_a_shifted_candidate_back_onto_the_mask(toy_v
     before = silhouette_iou(rendered_silhouette(loaded, AS_TRAINED, start[0], intrinsics), mask)
     after = silhouette_iou(rendered_silhouette(loaded, AS_TRAINED, result.c2w[0], intrinsics), mask)
     assert before < 0.5 and after > 0.7, (before, after)  # measured: 0.34 -> 0.79
+
+
+def test_the_ranking_weighs_the_silhouette_by_its_own_factor(toy_view):
+    """The ranking adds the silhouette with ``rank_silhouette_weight`` when it is given, not the optimization's
+    weight; unset, with the optimization's; at 0 it ranks on colour alone."""
+    loaded, intrinsics, truth, image, mask, centre = toy_view
+    poses = torch.stack([truth, _shifted(truth, 0.3, loaded.dataparser_scale)])
+    silhouette = Silhouette.from_mask(mask, 2, 48, 0.7)
+    eval_pixels = torch.as_tensor(PixelSampler("random", 64).prepare(image).sample(np.random.default_rng(2)))
+    frame = PreparedFrame.from_image(loaded, image, intrinsics, PixelSampler("random", 64).prepare(image),
+                                     eval_pixels, torch.as_tensor(centre, dtype=torch.float32), silhouette=silhouette)
+    observed = frame.colours(eval_pixels)
+    band = silhouette.band(silhouette.eval_pixels)
+    colour = candidate_losses(loaded, poses, intrinsics, eval_pixels, observed, "mse", False)
+    sil = candidate_losses(loaded, poses, intrinsics, eval_pixels, observed, "mse", False,
+                           band=replace(band, weight=1.0), colour_weight=0.0)
+
+    def ranked(config: OptimizerConfig) -> torch.Tensor:
+        alive, active = torch.ones(2, dtype=torch.bool), torch.ones(2, dtype=torch.bool)
+        return rank(loaded, poses, alive, active, frame, config, AS_TRAINED, []).losses
+
+    assert torch.allclose(ranked(OptimizerConfig(silhouette_weight=0.7)), colour + 0.7 * sil, rtol=1e-4, atol=1e-7)
+    assert torch.allclose(ranked(OptimizerConfig(rank_silhouette_weight=0.0)), colour, rtol=1e-4, atol=1e-7)
+    assert torch.allclose(ranked(OptimizerConfig(rank_silhouette_weight=0.2)), colour + 0.2 * sil, rtol=1e-4, atol=1e-7)
+    assert sil[1] > sil[0]

@@ -27,7 +27,8 @@ ACCEPTED = {
     "start": {0}, "stop": {0}, "seed": {0}, "target": {0, -1}, "lost-iou": {0}, "watch-count": {0}, "watch-deg": {0},
     "starts.min-deg": {0}, "starts.max-deg": {0}, "starts.shift-m": {0}, "starts.prior-q": {-1},
     "starts.prior-r": {0, -1}, "bank.subdivisions": {0}, "bank.silhouette-weight": {0}, "bank.nms-deg": {0},
-    "optimizer.silhouette-weight": {0}, "optimizer.colour-weight": {0},  # not both 0: the cross-check below
+    "optimizer.silhouette-weight": {0}, "optimizer.rank-silhouette-weight": {0},
+    "optimizer.colour-weight": {0},  # not with a silhouette weight 0: the cross-check below
     "optimizer.min-improvement": {0}, "monte-carlo.spawn": {0}, "monte-carlo.spawn-rot-deg": {0},
     "monte-carlo.spawn-trans-m": {0}, "optimizer.gauss-newton-blur-px": {0},  # 0 px: the sharp level
     "optimizer.averaging": {0},  # 0: off
@@ -95,12 +96,15 @@ def test_zero_and_minus_one_pass_where_they_mean_something(option, value):
     assert _value(config, option) == value  # and the value validated was really the option's
 
 
-def test_the_colour_weight_may_be_0_only_with_a_silhouette_weight():
+def test_the_colour_weight_may_be_0_only_with_both_silhouette_weights():
     base = InvertConfig()
     alone = replace(base, optimizer=replace(base.optimizer, colour_weight=0.0, silhouette_weight=1.0))
-    validate(alone)
-    with pytest.raises(SettingsError, match="silhouette weight is 0"):
+    validate(alone)  # the ranking's weight, unset, follows the optimization's
+    validate(replace(alone, optimizer=replace(alone.optimizer, rank_silhouette_weight=0.5)))
+    with pytest.raises(SettingsError, match="when the silhouette weight is 0"):
         validate(replace(alone, optimizer=replace(alone.optimizer, silhouette_weight=0.0)))
+    with pytest.raises(SettingsError, match="when the ranking's silhouette weight is 0"):
+        validate(replace(alone, optimizer=replace(alone.optimizer, rank_silhouette_weight=0.0)))
 
 
 @pytest.mark.parametrize("option", [o for o, hint in numeric_options(InvertConfig).items() if _inner(hint) != hint])

@@ -17,7 +17,7 @@ advance); :func:`optimize_candidates` runs one over the other.
 """
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -72,6 +72,12 @@ class OptimizerConfig:
     With ``silhouette_from grey`` cut at ``silhouette_edge 0.35``, 0.25 ended 33% of the frames of the unseen
     seed-23 counts (ten seeds) under 5 degrees against 20% off, and 108 of 120 frames of user-path.sh's model
     over three seeds against 98 (docs/benchmarks.md, session 15)."""
+    rank_silhouette_weight: float | None = None
+    """Factor on the silhouette loss when the step's candidates are ranked (which one is the frame's estimate
+    and which go on); unset: ``silhouette_weight``, which then weighs both. 0 ranks on colour, as the thesis
+    does. Side by side over 1,200 frames of unseen scenes (session 20, docs/benchmarks.md), 0 ended more runs
+    under 5 degrees on their last frame (145 against 137 of 150) but had fewer frames under 5 degrees (76.7%
+    against 80.7%), so the default stays unset."""
     silhouette_from: Literal["accumulation", "grey"] = "grey"
     """What the model's silhouette is. accumulation: its opacity along each ray. grey: its rendered colour
     as the detector reads a frame (the maximum over channels), through a sigmoid centred on the grey level
@@ -216,7 +222,8 @@ class PreparedFrame:
     error_fn: Callable[[Tensor], Tensor] | None = None
     """Poses [N, 4, 4] to rotation errors in degrees [N], recorded in the history when the truth is known."""
     silhouette: Silhouette | None = None
-    """The observed object mask's band, when the silhouette loss is on and the frame has a mask."""
+    """The observed object mask's band, when the silhouette loss (optimization's or ranking's) is on and the
+    frame has a mask."""
 
     @classmethod
     def from_image(cls, loaded: LoadedModel, image: np.ndarray | Tensor, intrinsics: Intrinsics,
@@ -278,7 +285,8 @@ class CandidateStep:
         step, then drop, prune or stop. Returns the iteration's history record."""
         device, config, active = self.loaded.device, self.config, self.active
         pixels = torch.as_tensor(self.frame.sampler.sample(rng), device=device)
-        band = None if self.frame.silhouette is None else self.frame.silhouette.draw(rng)
+        silhouette = self.frame.silhouette
+        band = None if silhouette is None or config.silhouette_weight == 0 else silhouette.draw(rng)
         c2w = self.poses()
         rendered = torch.nonzero(active).flatten()
         leaf = c2w[rendered].detach().requires_grad_(True)
@@ -336,7 +344,10 @@ def rank(loaded: LoadedModel, final: Tensor, alive: Tensor, active: Tensor, fram
     losses = torch.full((final.shape[0],), torch.inf, device=loaded.device)
     kept = torch.nonzero(active).flatten()
     pixels, silhouette = frame.eval_pixels, frame.silhouette
-    band = None if silhouette is None else silhouette.band(silhouette.eval_pixels)
+    weight = config.silhouette_weight if config.rank_silhouette_weight is None else config.rank_silhouette_weight
+    band = None
+    if silhouette is not None and weight > 0:
+        band = replace(silhouette.band(silhouette.eval_pixels), weight=weight)
     losses[kept] = candidate_losses(loaded, final[kept], frame.intrinsics, pixels, frame.colours(pixels), config.loss,
                                     backward=False, settings=settings, band=band, colour_weight=config.colour_weight)
     alive &= ~active | torch.isfinite(losses)

@@ -224,7 +224,7 @@ class Tracker:
         if self.error_fn is not None and frame.c2w_true is not None:
             error_fn = lambda poses, truth=frame.c2w_true: self.error_fn(poses, truth)  # noqa: E731
         silhouette = None
-        if optimizer.silhouette_weight > 0 and frame.mask is not None:
+        if (optimizer.silhouette_weight > 0 or (optimizer.rank_silhouette_weight or 0) > 0) and frame.mask is not None:
             mask, level = frame.mask, None
             if optimizer.silhouette_from == "grey" and not math.isnan(frame.mask_threshold):
                 mask, level = edge_mask(frame.image, frame.mask, frame.mask_threshold, optimizer.silhouette_edge)

@@ -136,6 +136,7 @@ INVERT_RULES: dict[str, Rule] = {
     "optimizer.lr": number(above=0),
     "optimizer.colour-weight": number(at_least=0),
     "optimizer.silhouette-weight": number(at_least=0),
+    "optimizer.rank-silhouette-weight": number(at_least=0),
     "optimizer.silhouette-pixels": whole(1),
     "optimizer.silhouette-band-px": whole(1),
     "optimizer.silhouette-softness": number(above=0),
@@ -243,6 +244,10 @@ def validate(config: "InvertConfig", where: str | None = None) -> None:
         option = _option("optimizer.colour-weight", where)
         raise SettingsError(f"{option} must be above 0 when the silhouette weight is 0 (the loss would be 0 and "
                             "nothing would move): give --optimizer.silhouette-weight too")
+    if optimizer.colour_weight == 0 and optimizer.rank_silhouette_weight == 0:  # unset follows the weight above
+        option = _option("optimizer.colour-weight", where)
+        raise SettingsError(f"{option} must be above 0 when the ranking's silhouette weight is 0 (every candidate "
+                            "would rank the same): give --optimizer.rank-silhouette-weight too")
     if optimizer.method == "gauss-newton":
         name = _option("optimizer.method", where)
         if optimizer.loss != "mse" or optimizer.silhouette_weight > 0 or optimizer.colour_weight != 1:
