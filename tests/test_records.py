@@ -18,7 +18,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "nerfinv_plugin"
 
 FRAME_JSON = {"index": 1, "frame": 3, "name": "img000004.jpg", "steps": 2, "wall_time_s": 1.5, "elapsed_s": 4.25,
               "q": [0.5, 0.5, -0.5, 0.5], "r": [0.1, -0.2, 5.0], "c2w_model": [[1.0, 0.0, 0.0, 0.0]] * 4,
-              "loss": 0.0123, "candidates": 9, "dropped": 1, "object_found": True, "reinitialized": True,
+              "loss": 0.0123, "outline_loss": 0.041, "silhouette_weight": 0.25, "candidates": 9, "dropped": 1,
+              "object_found": True, "reinitialized": True,
               "bank_added": 3, "interpolated": False, "observed_s": 15.0, "estimated_s": 18.5, "latency_s": 3.5,
               "rotation_deg": 2.5, "translation_m": 0.05, "translation_rel": 0.01, "score": 0.0536}
 """A line of results.jsonl as ns-invert writes it, keys in the file's order."""
@@ -78,13 +79,14 @@ def test_what_the_run_folder_writes_reads_back_equal_in_the_files_format(tmp_pat
     assert (tmp_path / STEPS_JSONL).read_text().splitlines()[0] == json.dumps(STEP_JSON)
     assert (tmp_path / SUMMARY).read_text() == json.dumps(SUMMARY_JSON, indent=2)
     csv_lines = (tmp_path / RESULTS_CSV).read_text().splitlines()
-    assert csv_lines[1] == "0,img000004.jpg,2,1.5,4.25,0.0123,2.5,0.05,0.01,0.0536,9,1,True,True,3," \
+    assert csv_lines[1] == "0,img000004.jpg,2,1.5,4.25,0.0123,0.041,0.25,2.5,0.05,0.01,0.0536,9,1,True,True,3," \
                            "False,15.0,18.5,3.5,0.5,0.5,-0.5,0.5,0.1,-0.2,5.0"
-    assert csv_lines[2].startswith("3,img000004.jpg,2,1.5,4.25,0.0123,,,,,9,")
+    assert csv_lines[2].startswith("3,img000004.jpg,2,1.5,4.25,0.0123,0.041,0.25,,,,,9,")
 
 
 def test_an_old_run_folder_reads_with_defaults_for_the_newer_keys(tmp_path):
-    old_frame = {k: v for k, v in FRAME_JSON.items() if k not in ("object_found", "reinitialized", "bank_added")}
+    old_frame = {k: v for k, v in FRAME_JSON.items()
+                 if k not in ("object_found", "reinitialized", "bank_added", "outline_loss", "silhouette_weight")}
     old_step = {k: v for k, v in STEP_JSON.items() if k not in ("pruned", "iterations", "reinitialized", "bank_added")}
     old_summary = {k: v for k, v in SUMMARY_JSON.items()
                    if k not in ("starts", "frames_without_object", "frames_reinitialized", "target_radius_m", "bank")}
@@ -94,6 +96,7 @@ def test_an_old_run_folder_reads_with_defaults_for_the_newer_keys(tmp_path):
     folder = RunFolder(tmp_path)
     (row,), (step,), summary = folder.rows(), folder.steps(), folder.summary()
     assert (row.object_found, row.reinitialized, row.bank_added) == (True, False, 0)
+    assert row.outline_loss is None and row.silhouette_weight is None
     assert (step.pruned, step.iterations, step.reinitialized, step.bank_added) == ([], 3, False, 0)
     assert summary.bank is None and summary.starts is None and summary.frames_done == 2
     assert summary.to_json() == old_summary  # nothing made up for what the old run did not record

@@ -1,5 +1,6 @@
 """The silhouette term: the band about the outline, the loss against a hand-computed case, the combined loss
-against separate renders, and that the silhouette alone pulls a shifted candidate back onto the object."""
+against separate renders, that the silhouette alone pulls a shifted candidate back onto the object, and the
+outline loss that ``silhouette_trust`` weighs the term by."""
 
 
 from dataclasses import replace
@@ -14,6 +15,7 @@ from nerfinv_plugin.inversion.optimizer import (
     PreparedFrame,
     candidate_losses,
     optimize_candidates,
+    outline_loss,
     rank,
 )
 from nerfinv_plugin.inversion.sampling import PixelSampler
@@ -200,3 +202,21 @@ def test_the_ranking_weighs_the_silhouette_by_its_own_factor(toy_view):
     assert torch.allclose(ranked(OptimizerConfig(rank_silhouette_weight=0.0)), colour, rtol=1e-4, atol=1e-7)
     assert torch.allclose(ranked(OptimizerConfig(rank_silhouette_weight=0.2)), colour + 0.2 * sil, rtol=1e-4, atol=1e-7)
     assert sil[1] > sil[0]
+
+
+@pytest.mark.parametrize("threshold", [None, 20.0], ids=["accumulation", "grey"])
+def test_the_outline_loss_is_the_unweighted_band_mean_of_one_pose(toy_view, threshold):
+    loaded, intrinsics, truth, image, mask, _ = toy_view
+    silhouette = Silhouette.from_mask(mask, 2, 48, 0.7, threshold=threshold, softness=3.0)
+    band = silhouette.band(silhouette.eval_pixels)
+    shifted = _shifted(truth, 0.3, loaded.dataparser_scale)
+    with torch.no_grad():
+        out = render(loaded, torch.stack([truth, shifted]), intrinsics, band.pixels)
+    if threshold is None:
+        model = out.accumulation[..., 0]
+    else:
+        model = 1.0 / (1.0 + torch.exp(-(out.rgb.amax(-1) * 255.0 - threshold) / 3.0))
+    reference = ((model - band.inside) ** 2).mean(1)
+    measured = torch.tensor([outline_loss(loaded, pose, intrinsics, band) for pose in (truth, shifted)])
+    assert torch.allclose(measured, reference, rtol=1e-4, atol=1e-7)
+    assert measured[1] > 2 * measured[0]  # the shifted pose's outline is elsewhere

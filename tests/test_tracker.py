@@ -15,6 +15,7 @@ from nerfinv_plugin.data.sequences import SequenceError
 from nerfinv_plugin.geometry.errors import rotation_error_deg
 from nerfinv_plugin.geometry.frames import label_to_c2w_opencv, opencv_to_opengl
 from nerfinv_plugin.geometry.se3 import exp_se3, geodesic_deg, log_se3
+from nerfinv_plugin.initialization.detect import find_object
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig, PreparedFrame, centred, optimize_candidates
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.session import InversionError, shirt_label_pool
@@ -328,3 +329,38 @@ def test_the_sample_region_decides_where_each_iterations_pixels_are_drawn(toy_se
         assert all(i.all() for i in iterations)
     else:  # the region is 600 of 4,000 pixels: uniform draws over the image fall outside it
         assert not any(i.all() for i in iterations)
+
+
+def test_the_silhouette_weight_follows_the_last_outline_loss_under_a_trust_level(toy_sequence):
+    """With ``silhouette_trust`` the term's weight on a step is ``weight x min(1, trust / L)**2``, ``L`` the last
+    step's outline loss; the first step has none and keeps the weight, and a resumed run keeps ``L``."""
+    loaded, frames, centre = toy_sequence
+    masked = []
+    for frame in frames[:3]:
+        found = find_object(frame.image)
+        masked.append(dataclasses.replace(frame, mask=found.mask, mask_threshold=found.threshold))
+    start = _starts(frames[0].c2w_true, centre, 3, loaded.dataparser_scale, seed=2)
+
+    def tracker(trust: float | None) -> Tracker:
+        optimizer = OptimizerConfig(iterations=3, silhouette_weight=0.5, silhouette_trust=trust)
+        return Tracker(loaded, centre, optimizer, MonteCarloConfig(keep=(1,), spawn=1), pixels=64, eval_pixels=128,
+                       seed=3)
+
+    fixed = tracker(None).run(masked, start)
+    assert [r.silhouette_weight for r in fixed] == [0.5, 0.5, 0.5]
+    assert all(r.outline_loss is not None and 0 < r.outline_loss < 1 for r in fixed)
+    trust = 0.5 * min(r.outline_loss for r in fixed)  # below every outline loss: every later step is lowered
+    adapted = tracker(trust)
+    state = adapted.begin(start)
+    first = adapted.step(state, masked[0], 0)
+    assert first.silhouette_weight == 0.5 and first.loss == fixed[0].loss  # nothing known yet: as fixed
+    buffer = io.BytesIO()
+    torch.save(state.state_dict(), buffer)
+    buffer.seek(0)
+    resumed = TrackerState.from_state_dict(torch.load(buffer, weights_only=False))
+    assert resumed.outline_loss == first.outline_loss
+    second = adapted.step(resumed, masked[1], 1)
+    assert second.silhouette_weight == pytest.approx(0.5 * (trust / first.outline_loss) ** 2, rel=1e-12)
+    assert second.loss != fixed[1].loss
+    high = tracker(2 * max(r.outline_loss for r in fixed)).run(masked, start)  # every outline counts as good
+    assert [r.loss for r in high] == [r.loss for r in fixed]

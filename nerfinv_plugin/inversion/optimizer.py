@@ -30,7 +30,7 @@ from nerfinv_plugin.inversion.losses import LossName, per_ray_loss
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.silhouette import BandPixels, Silhouette, silhouette_per_ray, soft_grey
 from nerfinv_plugin.model.loaded import LoadedModel
-from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, render_chunks
+from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, render, render_chunks
 
 
 @dataclass
@@ -78,6 +78,15 @@ class OptimizerConfig:
     does. Side by side over 1,200 frames of unseen scenes (session 20, docs/benchmarks.md), 0 ended more runs
     under 5 degrees on their last frame (145 against 137 of 150) but had fewer frames under 5 degrees (76.7%
     against 80.7%), so the default stays unset."""
+    silhouette_trust: float | None = None
+    """The outline loss (the silhouette term's band mean, unweighted) up to which the model's outline counts as
+    matching the frame's. Above it the step's silhouette weight (optimization's and, unless set apart, the
+    ranking's) is ``silhouette_weight x (silhouette_trust / L)**2``, ``L`` the outline loss of the last step's
+    estimate, so that a model whose outline cannot match the frames' (a fuzz along thin edges close in, a
+    panel it renders dim: docs/benchmarks.md) pulls less. The square, because the estimate's ``L``
+    understates the misfit (the term has already pulled the estimate's outline onto the frame's) and a weight
+    of 0.05 was measured to help where 0.1 did not (session 24). Unset: the weight is fixed. Frames of
+    well-modelled scenes end at 0.03-0.07."""
     silhouette_from: Literal["accumulation", "grey"] = "grey"
     """What the model's silhouette is. accumulation: its opacity along each ray. grey: its rendered colour
     as the detector reads a frame (the maximum over channels), through a sigmoid centred on the grey level
@@ -203,6 +212,19 @@ def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, p
             totals.index_add_(0, candidate_of_ray[part], per_ray.detach())
             del out, per_ray  # before the next chunk renders: one chunk's graph in memory at a time
     return totals
+
+
+def outline_loss(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, band: BandPixels,
+                 settings: RenderSettings = AS_TRAINED) -> float:
+    """The silhouette loss of one pose ``c2w`` [4, 4] on ``band``'s pixels, unweighted: how far the model's
+    outline there is from the frame's (0: it matches to the pixel; the soft edge leaves about 0.03)."""
+    with torch.no_grad():
+        out = render(loaded, c2w[None].to(loaded.device, torch.float32), intrinsics, band.pixels, settings)
+    if out.accumulation is None and band.threshold is None:
+        raise ValueError(f"{type(loaded.model).__name__} gives no accumulation output: the silhouette "
+                         "loss cannot be used with it (set --optimizer.silhouette-weight 0)")
+    model = out.accumulation[0] if band.threshold is None else soft_grey(out.rgb[0], band.threshold, band.softness)
+    return float(silhouette_per_ray(model, band.inside.to(loaded.device)).mean())
 
 
 @dataclass(frozen=True)

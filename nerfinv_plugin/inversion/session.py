@@ -426,7 +426,8 @@ class Inversion:
         observed = clock.observed(k)
         row = FrameResult(index=k, frame=self._frame_number(k), name=sequence.frames[k].name,
                           steps=self.config.steps_per_frame, wall_time_s=wall, elapsed_s=elapsed, q=q, r=r,
-                          c2w_model=estimate_model.tolist(), loss=record.loss, candidates=record.candidates,
+                          c2w_model=estimate_model.tolist(), loss=record.loss, outline_loss=record.outline_loss,
+                          silhouette_weight=record.silhouette_weight, candidates=record.candidates,
                           dropped=len(record.result.dropped), object_found=object_found, reinitialized=reinitialized,
                           bank_added=bank_added, observed_s=observed, estimated_s=clock.now_s,
                           latency_s=None if observed is None else clock.now_s - observed)

@@ -27,6 +27,7 @@ from nerfinv_plugin.inversion.optimizer import (
     PreparedFrame,
     StepResult,
     optimize_candidates,
+    outline_loss,
 )
 from nerfinv_plugin.inversion.sampling import PixelSampler, Strategy
 from nerfinv_plugin.inversion.silhouette import Silhouette, edge_mask
@@ -114,6 +115,11 @@ class StepRecord:
     candidates: int
     result: StepResult
     kept: int = 0
+    silhouette_weight: float | None = None
+    """The silhouette term's weight in the step (``silhouette_trust`` adapts it); None without the term."""
+    outline_loss: float | None = None
+    """The silhouette loss of ``estimate`` on the frame's ranking band, unweighted (how far the model's outline
+    is from the frame's there); None without the term."""
 
 
 @dataclass
@@ -146,6 +152,8 @@ class TrackerState:
     that frame measures it again from here, so a frame counts once however many steps it gets."""
     appearance: GainBias | None = None
     """``appearance gain-bias``: the mapping fitted on ``last_frame``, which its further steps reuse."""
+    outline_loss: float | None = None
+    """The last step's :attr:`StepRecord.outline_loss`: ``silhouette_trust`` weighs the next step's term by it."""
 
     def state_dict(self) -> dict:
         return {"step": self.step, "candidates": self.candidates, "rng": self.rng.bit_generator.state,
@@ -154,7 +162,8 @@ class TrackerState:
                 "previous_estimate": self.previous_estimate, "eval_pixels": self.eval_pixels,
                 "carried": self.carried, "motion": None if self.motion is None else self.motion.to_dict(),
                 "motion_before": None if self.motion_before is None else self.motion_before.to_dict(),
-                "appearance": None if self.appearance is None else self.appearance.to_dict()}
+                "appearance": None if self.appearance is None else self.appearance.to_dict(),
+                "outline_loss": self.outline_loss}
 
     @classmethod
     def from_state_dict(cls, state: dict) -> "TrackerState":
@@ -167,7 +176,8 @@ class TrackerState:
                    state["last_loss"], state["previous_estimate"], state["eval_pixels"], state.get("carried", 0),
                    None if motion is None else MotionState.from_dict(motion),
                    None if before is None else MotionState.from_dict(before),
-                   None if state.get("appearance") is None else GainBias.from_dict(state["appearance"]))
+                   None if state.get("appearance") is None else GainBias.from_dict(state["appearance"]),
+                   state.get("outline_loss"))
 
 
 @dataclass
@@ -220,6 +230,7 @@ class Tracker:
                 PixelSampler("random", self.eval_pixels).prepare(frame.image, frame.region(self.rank_region))
                 .sample(state.rng))
         optimizer = self.optimizer if mc.reset_lr or state.step == 0 else _decayed(self.optimizer, state.step)
+        optimizer = _trusted(optimizer, state.outline_loss)
         error_fn = None
         if self.error_fn is not None and frame.c2w_true is not None:
             error_fn = lambda poses, truth=frame.c2w_true: self.error_fn(poses, truth)  # noqa: E731
@@ -259,7 +270,12 @@ class Tracker:
             self._measure(state, best, kept, result.losses[order[:kept_count]].cpu())
         spawned = perturb_about(kept.repeat_interleave(mc.spawn, 0), self.centre.cpu(), mc.spawn_rot_deg,
                                 mc.spawn_trans_m * self.loaded.dataparser_scale, state.generator)
-        record = StepRecord(frame_index, best, best_loss, state.candidates.shape[0], result, kept_count)
+        outline = None
+        if silhouette is not None:
+            outline = outline_loss(self.loaded, best, frame.intrinsics, silhouette.band(silhouette.eval_pixels),
+                                   self.render)
+        record = StepRecord(frame_index, best, best_loss, state.candidates.shape[0], result, kept_count,
+                            None if silhouette is None else optimizer.silhouette_weight, outline)
         state.previous_estimate = previous
         state.step += 1
         state.candidates = torch.cat([kept, spawned])
@@ -267,6 +283,7 @@ class Tracker:
         state.last_frame, state.last_estimate, state.last_loss = frame_index, best, best_loss
         state.eval_pixels = eval_pixels
         state.appearance = appearance
+        state.outline_loss = outline if outline is not None else state.outline_loss
         return record
 
     def _fit_appearance(self, c2w: Tensor, frame: Frame, pixels: Tensor) -> GainBias:
@@ -345,3 +362,12 @@ def _constant_velocity(previous: Tensor, current: Tensor) -> Tensor:
     predicts the next pose (camera-to-world poses, left multiplication)."""
     motion = current.double() @ torch.linalg.inv(previous.double())
     return exp_se3(log_se3(motion)).float()  # re-orthonormalised through the Lie algebra
+
+
+def _trusted(config: OptimizerConfig, outline: float | None) -> OptimizerConfig:
+    """``config`` with its silhouette weight times ``min(1, silhouette_trust / outline)**2``, ``outline`` the
+    last step's outline loss (:attr:`OptimizerConfig.silhouette_trust`); as it is without a trust level or an
+    outline loss yet (the first step)."""
+    if config.silhouette_trust is None or outline is None or outline <= config.silhouette_trust:
+        return config
+    return replace(config, silhouette_weight=config.silhouette_weight * (config.silhouette_trust / outline) ** 2)

@@ -137,6 +137,7 @@ INVERT_RULES: dict[str, Rule] = {
     "optimizer.colour-weight": number(at_least=0),
     "optimizer.silhouette-weight": number(at_least=0),
     "optimizer.rank-silhouette-weight": number(at_least=0),
+    "optimizer.silhouette-trust": number(above=0),
     "optimizer.silhouette-pixels": whole(1),
     "optimizer.silhouette-band-px": whole(1),
     "optimizer.silhouette-softness": number(above=0),

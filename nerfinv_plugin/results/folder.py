@@ -24,9 +24,10 @@ RESULTS_CSV = "results.csv"
 STEPS_JSONL = "steps.jsonl"
 SUMMARY = "summary.json"
 
-CSV_COLUMNS = ("frame", "name", "steps", "wall_time_s", "elapsed_s", "loss", "rotation_deg", "translation_m",
-               "translation_rel", "score", "candidates", "dropped", "object_found", "reinitialized", "bank_added",
-               "interpolated", "observed_s", "estimated_s", "latency_s", "qw", "qx", "qy", "qz", "rx", "ry", "rz")
+CSV_COLUMNS = ("frame", "name", "steps", "wall_time_s", "elapsed_s", "loss", "outline_loss", "silhouette_weight",
+               "rotation_deg", "translation_m", "translation_rel", "score", "candidates", "dropped", "object_found",
+               "reinitialized", "bank_added", "interpolated", "observed_s", "estimated_s", "latency_s", "qw", "qx",
+               "qy", "qz", "rx", "ry", "rz")
 """One row per frame; the model-frame pose is in the JSONL only (a 4x4 matrix does not fit a column)."""
 
 

@@ -48,6 +48,12 @@ class FrameResult:
     """The estimate as the model-frame camera-to-world matrix (OpenGL axes), 4 x 4."""
     loss: float | None
     """Loss of the estimate on the frame's ranking pixels; ``None`` on an interpolated frame."""
+    outline_loss: float | None = None
+    """The silhouette loss of the estimate on the frame's ranking band, unweighted: how far the model's outline
+    is from the frame's (about 0.03-0.07 where the model's outline is good); ``None`` without the term."""
+    silhouette_weight: float | None = None
+    """The silhouette term's weight on the frame (``--optimizer.silhouette-trust`` lowers it after frames whose
+    outline loss is high); ``None`` without the term."""
     candidates: int
     """Candidates of the frame's last step (0 on an interpolated frame)."""
     dropped: int
