@@ -30,7 +30,7 @@ from nerfinv_plugin.inversion.losses import LossName, per_ray_loss
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.silhouette import BandPixels, Silhouette, silhouette_per_ray, soft_grey
 from nerfinv_plugin.model.loaded import LoadedModel
-from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderSettings, render, render_chunks
+from nerfinv_plugin.model.render import AS_TRAINED, Intrinsics, RenderOutput, RenderSettings, render, render_chunks
 
 
 @dataclass
@@ -171,6 +171,17 @@ def centred(centre: Tensor) -> tuple[Tensor, Tensor]:
     return to_centre, from_centre
 
 
+def model_silhouette(loaded: LoadedModel, out: RenderOutput, band: BandPixels) -> Tensor:
+    """The model's silhouette on rendered rays, as ``band`` reads it: their accumulation, or with the band's
+    grey level their colour through :func:`soft_grey`. Raises for a model without accumulation that needs it."""
+    if band.threshold is not None:
+        return soft_grey(out.rgb, band.threshold, band.softness)
+    if out.accumulation is None:
+        raise ValueError(f"{type(loaded.model).__name__} gives no accumulation output: the silhouette "
+                         "loss cannot be used with it (set --optimizer.silhouette-weight 0)")
+    return out.accumulation
+
+
 def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor, observed: Tensor,
                      loss: LossName, backward: bool, settings: RenderSettings = AS_TRAINED,
                      band: BandPixels | None = None, colour_weight: float = 1.0) -> Tensor:
@@ -198,12 +209,8 @@ def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, p
         for part, out in render_chunks(loaded, c2w, intrinsics, pixels, settings):
             per_ray = per_ray_loss(loss, out.rgb, targets[part]) * colour_scale[part]
             if band is not None:
-                if out.accumulation is None and band.threshold is None:
-                    raise ValueError(f"{type(loaded.model).__name__} gives no accumulation output: the silhouette "
-                                     "loss cannot be used with it (set --optimizer.silhouette-weight 0)")
-                per_ray = per_ray + silhouette_per_ray(
-                    out.accumulation if band.threshold is None else soft_grey(out.rgb, band.threshold, band.softness),
-                    inside[part]) * band_scale[part]
+                per_ray = per_ray + silhouette_per_ray(model_silhouette(loaded, out, band),
+                                                       inside[part]) * band_scale[part]
             if backward and per_ray.requires_grad:  # rays that missed the target carry no gradient
                 # Non-finite rays must not poison the others' gradients; their candidates get dropped. Every
                 # chunk's graph starts in the one ray bundle built from c2w for all rays: it is kept for the
@@ -220,11 +227,7 @@ def outline_loss(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, band:
     outline there is from the frame's (0: it matches to the pixel; the soft edge leaves about 0.03)."""
     with torch.no_grad():
         out = render(loaded, c2w[None].to(loaded.device, torch.float32), intrinsics, band.pixels, settings)
-    if out.accumulation is None and band.threshold is None:
-        raise ValueError(f"{type(loaded.model).__name__} gives no accumulation output: the silhouette "
-                         "loss cannot be used with it (set --optimizer.silhouette-weight 0)")
-    model = out.accumulation[0] if band.threshold is None else soft_grey(out.rgb[0], band.threshold, band.softness)
-    return float(silhouette_per_ray(model, band.inside.to(loaded.device)).mean())
+    return float(silhouette_per_ray(model_silhouette(loaded, out, band), band.inside.to(loaded.device)).mean())
 
 
 @dataclass(frozen=True)
