@@ -8,6 +8,12 @@ model is rendered at the best candidate the frame starts from, on the frame's ra
 numbers are fitted by least squares, and the observed colours are mapped back to the model's scale,
 ``(observed - bias) / gain``, for every iteration and the ranking of that frame. A frame keeps one mapping,
 so that its steps and candidates are compared on one scale.
+
+``candidate-gain-bias`` fits the six numbers for every candidate instead, on its own render: a wrong pose
+cannot borrow the mapping of the frame's best start, and a colour that the model renders otherwise than the
+frame shows it (a view-dependent tint the model did not learn) is not read as a pose error. During a step a
+candidate's mapping comes from its previous iteration's render (no second render; the first iteration
+compares as observed); the ranking fits it on the ranking pixels themselves.
 """
 
 from dataclasses import dataclass
@@ -39,15 +45,8 @@ class GainBias:
     @classmethod
     def fit(cls, rendered: Tensor, observed: Tensor) -> "GainBias":
         """Least squares per channel from colours [P, 3] rendered by the model and observed at the same pixels."""
-        rendered, observed = rendered.double().cpu(), observed.double().cpu()
-        mean_r, mean_o = rendered.mean(0), observed.mean(0)
-        covariance = ((rendered - mean_r) * (observed - mean_o)).mean(0)
-        variance = ((rendered - mean_r) ** 2).mean(0)
-        fitted = covariance / variance.clamp_min(1e-12)
-        gain = torch.where(variance.sqrt() > MIN_SPREAD, fitted, torch.ones(3, dtype=torch.float64))
-        gain = gain.clamp(MIN_GAIN, MAX_GAIN)
-        bias = mean_o - gain * mean_r
-        return cls(gain.float(), bias.float())
+        gain, bias = fit_each(rendered.cpu()[None], observed.cpu())
+        return cls(gain[0], bias[0])
 
     def to_model(self, observed: Tensor) -> Tensor:
         """Observed colours [..., 3] in [0, 1] mapped to the model's scale."""
@@ -59,3 +58,17 @@ class GainBias:
     @classmethod
     def from_dict(cls, data: dict) -> "GainBias":
         return cls(torch.tensor(data["gain"], dtype=torch.float32), torch.tensor(data["bias"], dtype=torch.float32))
+
+
+def fit_each(rendered: Tensor, observed: Tensor) -> tuple[Tensor, Tensor]:
+    """Per candidate and channel, the least-squares ``observed = gain * rendered + bias`` from the colours
+    [N, P, 3] each candidate renders at pixels whose observed colours are [P, 3]: gain and bias [N, 3]
+    (float32, on ``rendered``'s device)."""
+    rendered, observed = rendered.detach().double(), observed.detach().double().to(rendered.device)
+    mean_r, mean_o = rendered.mean(1, keepdim=True), observed.mean(0)
+    covariance = ((rendered - mean_r) * (observed - mean_o)).mean(1)
+    variance = ((rendered - mean_r) ** 2).mean(1)
+    fitted = covariance / variance.clamp_min(1e-12)
+    gain = torch.where(variance.sqrt() > MIN_SPREAD, fitted, torch.ones_like(fitted)).clamp(MIN_GAIN, MAX_GAIN)
+    bias = mean_o - gain * mean_r[:, 0]
+    return gain.float(), bias.float()

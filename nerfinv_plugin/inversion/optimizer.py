@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from nerfinv_plugin.geometry.se3 import exp_se3
-from nerfinv_plugin.inversion.appearance import GainBias
+from nerfinv_plugin.inversion.appearance import GainBias, fit_each
 from nerfinv_plugin.inversion.losses import LossName, per_ray_loss
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.silhouette import BandPixels, Silhouette, silhouette_per_ray, soft_grey
@@ -106,10 +106,11 @@ class OptimizerConfig:
     """Band pixels drawn per iteration for the silhouette loss, besides the photometric pixels."""
     silhouette_band_px: int = 3
     """Half-width of the band about the observed outline the silhouette pixels come from, in pixels."""
-    appearance: Literal["as-observed", "gain-bias"] = "as-observed"
+    appearance: Literal["as-observed", "gain-bias", "candidate-gain-bias"] = "as-observed"
     """as-observed: compare the observed colours as they are; gain-bias: map them to the model's scale with a
     per-channel gain and bias fitted once per frame at the best starting candidate (another camera, exposure
-    or light than the training images': :mod:`nerfinv_plugin.inversion.appearance`)."""
+    or light than the training images': :mod:`nerfinv_plugin.inversion.appearance`); candidate-gain-bias:
+    every candidate's render mapped to the frame by a gain and bias of its own, refitted each iteration."""
     translation_unit: Literal["object", "model"] = "object"
     """What one unit of the screw's translation part is. object: the object's radius, so that a step moves
     the object in the image about as far as a turn of the same size does, on any scene scale. model: one
@@ -184,12 +185,16 @@ def model_silhouette(loaded: LoadedModel, out: RenderOutput, band: BandPixels) -
 
 def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, pixels: Tensor, observed: Tensor,
                      loss: LossName, backward: bool, settings: RenderSettings = AS_TRAINED,
-                     band: BandPixels | None = None, colour_weight: float = 1.0) -> Tensor:
+                     band: BandPixels | None = None, colour_weight: float = 1.0,
+                     mapping: tuple[Tensor, Tensor] | None = None, rendered: Tensor | None = None) -> Tensor:
     """Loss of each candidate [N]: ``colour_weight`` times the mean photometric loss over ``pixels``, plus,
     with ``band``, its weight times the mean silhouette loss over the band pixels, all rendered in one pass
     under ``settings``. With ``backward``, gradients accumulate into ``c2w.grad`` chunk by chunk, so memory
-    stays bounded by one chunk."""
+    stays bounded by one chunk. ``mapping``, each candidate's gain and bias [N, 3] (``candidate-gain-bias``),
+    maps its rendered colours to the frame's before they are compared; ``rendered`` [N, P, 3], when given,
+    receives the colours each candidate rendered at ``pixels`` (detached, before the mapping)."""
     n, p = c2w.shape[0], pixels.shape[0]
+    colour_rays = p
     totals = torch.zeros(n, dtype=torch.float32, device=loaded.device)
     colour_scale = torch.full((p,), colour_weight / p, device=loaded.device)
     if band is not None:  # band rays follow the colour rays; their colour is not compared
@@ -205,9 +210,16 @@ def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, p
     targets = observed.repeat(n, 1)
     colour_scale = colour_scale.repeat(n)
     candidate_of_ray = torch.arange(n, device=loaded.device).repeat_interleave(p)
+    every_ray = None if rendered is None else torch.zeros(n * p, 3, device=loaded.device)
     with torch.set_grad_enabled(backward):
         for part, out in render_chunks(loaded, c2w, intrinsics, pixels, settings):
-            per_ray = per_ray_loss(loss, out.rgb, targets[part]) * colour_scale[part]
+            rgb = out.rgb
+            if every_ray is not None:
+                every_ray[part] = rgb.detach()
+            if mapping is not None:
+                of = candidate_of_ray[part]
+                rgb = rgb * mapping[0][of] + mapping[1][of]
+            per_ray = per_ray_loss(loss, rgb, targets[part]) * colour_scale[part]
             if band is not None:
                 per_ray = per_ray + silhouette_per_ray(model_silhouette(loaded, out, band),
                                                        inside[part]) * band_scale[part]
@@ -217,7 +229,9 @@ def candidate_losses(loaded: LoadedModel, c2w: Tensor, intrinsics: Intrinsics, p
                 # next chunk's backward (retain_graph), and the chunk's own part goes with ``out`` below.
                 torch.where(torch.isfinite(per_ray), per_ray, 0.0).sum().backward(retain_graph=True)
             totals.index_add_(0, candidate_of_ray[part], per_ray.detach())
-            del out, per_ray  # before the next chunk renders: one chunk's graph in memory at a time
+            del out, rgb, per_ray  # before the next chunk renders: one chunk's graph in memory at a time
+    if rendered is not None:
+        rendered.copy_(every_ray.reshape(n, p, 3)[:, :colour_rays])
     return totals
 
 
@@ -294,6 +308,10 @@ class CandidateStep:
         """Not dropped for a non-finite pose, loss or gradient."""
         self.active = self.alive.clone()
         """Alive and not pruned: still rendered and optimized."""
+        self.mapping: tuple[Tensor, Tensor] | None = None
+        """candidate-gain-bias: each candidate's gain and bias [N, 3], from its last iteration's render."""
+        if config.appearance == "candidate-gain-bias":
+            self.mapping = torch.ones(n, 3, device=device), torch.zeros(n, 3, device=device)
         self.history: list[IterationRecord] = []
         self.stopped = False
         """No candidate is left, or patience ran out: the step ends before its last iteration."""
@@ -316,9 +334,16 @@ class CandidateStep:
         rendered = torch.nonzero(active).flatten()
         leaf = c2w[rendered].detach().requires_grad_(True)
         losses = torch.full((c2w.shape[0],), torch.inf, device=device)
-        losses[rendered] = candidate_losses(self.loaded, leaf, self.frame.intrinsics, pixels,
-                                            self.frame.colours(pixels), config.loss, backward=True,
-                                            settings=self.settings, band=band, colour_weight=config.colour_weight)
+        observed = self.frame.colours(pixels)
+        mapping = colours = None
+        if self.mapping is not None:
+            mapping = self.mapping[0][rendered], self.mapping[1][rendered]
+            colours = torch.zeros(rendered.shape[0], pixels.shape[0], 3, device=device)
+        losses[rendered] = candidate_losses(self.loaded, leaf, self.frame.intrinsics, pixels, observed, config.loss,
+                                            backward=True, settings=self.settings, band=band,
+                                            colour_weight=config.colour_weight, mapping=mapping, rendered=colours)
+        if self.mapping is not None:
+            self.mapping[0][rendered], self.mapping[1][rendered] = fit_each(colours, observed)
         grad = torch.zeros_like(c2w)
         grad[rendered] = leaf.grad
         # A pose, loss or gradient that is not finite ends the candidate. nerfstudio's renderer turns NaN
@@ -373,8 +398,16 @@ def rank(loaded: LoadedModel, final: Tensor, alive: Tensor, active: Tensor, fram
     band = None
     if silhouette is not None and weight > 0:
         band = replace(silhouette.band(silhouette.eval_pixels), weight=weight)
-    losses[kept] = candidate_losses(loaded, final[kept], frame.intrinsics, pixels, frame.colours(pixels), config.loss,
-                                    backward=False, settings=settings, band=band, colour_weight=config.colour_weight)
+    observed = frame.colours(pixels)
+    mapping = None
+    if config.appearance == "candidate-gain-bias":  # each candidate's own mapping on these very pixels
+        colours = torch.zeros(kept.shape[0], pixels.shape[0], 3, device=loaded.device)
+        candidate_losses(loaded, final[kept], frame.intrinsics, pixels, observed, config.loss, backward=False,
+                         settings=settings, rendered=colours)
+        mapping = fit_each(colours, observed)
+    losses[kept] = candidate_losses(loaded, final[kept], frame.intrinsics, pixels, observed, config.loss,
+                                    backward=False, settings=settings, band=band, colour_weight=config.colour_weight,
+                                    mapping=mapping)
     alive &= ~active | torch.isfinite(losses)
     losses = torch.where(active & alive, losses, torch.inf)
     dropped = torch.nonzero(~alive).flatten().tolist()

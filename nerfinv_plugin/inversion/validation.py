@@ -255,3 +255,6 @@ def validate(config: "InvertConfig", where: str | None = None) -> None:
             raise SettingsError(f"{name} gauss-newton fits the mean squared colour error alone: leave --optimizer.loss "
                                 "mse, --optimizer.silhouette-weight 0 and --optimizer.colour-weight 1, or use "
                                 "--optimizer.method adam")
+        if optimizer.appearance == "candidate-gain-bias":
+            raise SettingsError(f"{name} gauss-newton compares one mapping of the frame for all candidates: use "
+                                "--optimizer.appearance gain-bias or as-observed with it, or --optimizer.method adam")
