@@ -287,7 +287,15 @@ def test_rays_bounded_to_a_target_sphere_render_as_sharp_with_a_third_of_the_sam
     distance = float(np.linalg.norm(c2w[:3, 3] - centre.numpy()))
     assert float(bundle.nears[0]) == pytest.approx(distance - loaded.dataparser_scale, abs=0.02)
     assert float(bundle.fars[0]) == pytest.approx(distance + loaded.dataparser_scale, abs=0.02)
-    leaf = torch.as_tensor(c2w[None, :3], dtype=torch.float32).requires_grad_(True)
+    # The gradients are compared 4 degrees off the truth (turned about the target), where the pose error
+    # drives them: at the truth itself they are the model's noise, and a retrained fixture gave a cosine of
+    # 0.77 there (0.99 with the one before).
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec(np.radians(4.0) * np.array([1.0, 1.0, 0.0]) / np.sqrt(2)).as_matrix()
+    about = np.eye(4)
+    about[:3, 3] = centre.numpy()
+    off = about @ turn @ np.linalg.inv(about) @ c2w
+    leaf = torch.as_tensor(off[None, :3], dtype=torch.float32).requires_grad_(True)
     pixels = _object_pixels(loaded, c2w, intrinsics, 64)
     target = torch.as_tensor(observed, dtype=torch.float32, device=loaded.device)[pixels[:, 0], pixels[:, 1]]
     (render(loaded, leaf, intrinsics, pixels, settings).rgb[0] - target).pow(2).mean().backward()
@@ -299,11 +307,12 @@ def test_rays_bounded_to_a_target_sphere_render_as_sharp_with_a_third_of_the_sam
         render(loaded, leaf, intrinsics, pixels, settings)
     assert (sampler.num_proposal_samples_per_ray, sampler.num_nerf_samples_per_ray) == trained
     monkeypatch.setattr(sampler, "forward", forward)
-    # Gradients reach the pose through the bounded rays, and point where the unbounded rays' do (0.99 here).
+    # Gradients reach the pose through the bounded rays, and point where the unbounded rays' do.
     leaf.grad = None
     (render(loaded, leaf, intrinsics, pixels).rgb[0] - target).pow(2).mean().backward()
     assert torch.isfinite(bounded_grad).all()
-    assert float(torch.nn.functional.cosine_similarity(bounded_grad.flatten(), leaf.grad.flatten(), 0)) > 0.9
+    cosine = float(torch.nn.functional.cosine_similarity(bounded_grad.flatten(), leaf.grad.flatten(), 0))
+    assert cosine > 0.9
     assert 0 < hits.sum() < hits.size and image_rays == hits.sum()  # rays that miss the sphere: not rendered
     assert np.all(bounded[~hits] == 0.0)  # but black, as the model renders empty space
     assert psnr(bounded, observed) > full - 0.5, (psnr(bounded, observed), full)
