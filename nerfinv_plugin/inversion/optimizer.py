@@ -26,7 +26,7 @@ from torch import Tensor
 
 from nerfinv_plugin.geometry.se3 import exp_se3
 from nerfinv_plugin.inversion.appearance import GainBias, fit_each
-from nerfinv_plugin.inversion.losses import LossName, per_ray_loss
+from nerfinv_plugin.inversion.losses import LossName, per_candidate_loss, per_ray_loss
 from nerfinv_plugin.inversion.sampling import PixelSampler
 from nerfinv_plugin.inversion.silhouette import BandPixels, Silhouette, silhouette_per_ray, soft_grey
 from nerfinv_plugin.model.loaded import LoadedModel
@@ -399,15 +399,20 @@ def rank(loaded: LoadedModel, final: Tensor, alive: Tensor, active: Tensor, fram
     if silhouette is not None and weight > 0:
         band = replace(silhouette.band(silhouette.eval_pixels), weight=weight)
     observed = frame.colours(pixels)
-    mapping = None
-    if config.appearance == "candidate-gain-bias":  # each candidate's own mapping on these very pixels
+    if config.appearance == "candidate-gain-bias":
+        # One render: the silhouette part as it is, the colours kept, then each candidate's own mapping fitted
+        # on these very pixels and its colour loss taken from the same colours.
         colours = torch.zeros(kept.shape[0], pixels.shape[0], 3, device=loaded.device)
-        candidate_losses(loaded, final[kept], frame.intrinsics, pixels, observed, config.loss, backward=False,
-                         settings=settings, rendered=colours)
-        mapping = fit_each(colours, observed)
-    losses[kept] = candidate_losses(loaded, final[kept], frame.intrinsics, pixels, observed, config.loss,
-                                    backward=False, settings=settings, band=band, colour_weight=config.colour_weight,
-                                    mapping=mapping)
+        silhouette_part = candidate_losses(loaded, final[kept], frame.intrinsics, pixels, observed, config.loss,
+                                           backward=False, settings=settings, band=band, colour_weight=0.0,
+                                           rendered=colours)
+        gain, bias = fit_each(colours, observed)
+        mapped = colours * gain[:, None] + bias[:, None]
+        losses[kept] = silhouette_part + config.colour_weight * per_candidate_loss(config.loss, mapped, observed)
+    else:
+        losses[kept] = candidate_losses(loaded, final[kept], frame.intrinsics, pixels, observed, config.loss,
+                                        backward=False, settings=settings, band=band,
+                                        colour_weight=config.colour_weight)
     alive &= ~active | torch.isfinite(losses)
     losses = torch.where(active & alive, losses, torch.inf)
     dropped = torch.nonzero(~alive).flatten().tolist()
