@@ -32,6 +32,7 @@ ACCEPTED = {
     "optimizer.min-improvement": {0}, "monte-carlo.spawn": {0}, "monte-carlo.spawn-rot-deg": {0},
     "monte-carlo.spawn-trans-m": {0}, "optimizer.gauss-newton-blur-px": {0},  # 0 px: the sharp level
     "optimizer.averaging": {0},  # 0: off
+    "optimizer.polish-iterations": {0},  # 0: off
     "optimizer.silhouette-edge": {0},  # 0: the detector's threshold
 }
 """Which of 0 and -1 each ns-invert option takes (a tuple option: every entry that value); the others take
@@ -96,7 +97,7 @@ def test_zero_and_minus_one_pass_where_they_mean_something(option, value):
     assert _value(config, option) == value  # and the value validated was really the option's
 
 
-def test_the_colour_weight_may_be_0_only_with_both_silhouette_weights():
+def test_the_colour_weight_may_be_0_only_with_both_silhouette_weights_and_no_polish():
     base = InvertConfig()
     alone = replace(base, optimizer=replace(base.optimizer, colour_weight=0.0, silhouette_weight=1.0))
     validate(alone)  # the ranking's weight, unset, follows the optimization's
@@ -105,6 +106,9 @@ def test_the_colour_weight_may_be_0_only_with_both_silhouette_weights():
         validate(replace(alone, optimizer=replace(alone.optimizer, silhouette_weight=0.0)))
     with pytest.raises(SettingsError, match="when the ranking's silhouette weight is 0"):
         validate(replace(alone, optimizer=replace(alone.optimizer, rank_silhouette_weight=0.0)))
+    with pytest.raises(SettingsError, match="polishes on the colour loss"):
+        validate(replace(alone, optimizer=replace(alone.optimizer, polish_iterations=20)))
+    validate(replace(base, optimizer=replace(base.optimizer, polish_iterations=20)))
 
 
 @pytest.mark.parametrize("option", [o for o, hint in numeric_options(InvertConfig).items() if _inner(hint) != hint])

@@ -16,6 +16,7 @@ pixel sampler, ranking pixels and target centre) and a :class:`CandidateStep` (t
 advance); :func:`optimize_candidates` runs one over the other.
 """
 
+import copy
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Literal
@@ -131,6 +132,13 @@ class OptimizerConfig:
     thesis). Unset: never."""
     prune_ratio: float = 2.0
     """How far above the best loss a candidate may be and stay in the step."""
+    polish_iterations: int = 0
+    """Adam: after the ranking, this many more iterations on the step's best candidate alone, on the colour loss
+    only, with ``polish_pixels`` fresh pixels each, from ``polish_lr``. 0: off."""
+    polish_pixels: int = 1024
+    """Colour pixels each polishing iteration draws (where the step's pixels are drawn)."""
+    polish_lr: float = 0.003
+    """Adam learning rate at the start of the polish (decaying as the step's does)."""
 
 
 @dataclass(frozen=True)
@@ -441,7 +449,33 @@ def optimize_candidates(loaded: LoadedModel, start: Tensor, frame: PreparedFrame
             on_iteration(iteration, record)
         if step.stopped:
             break
-    return step.result()
+    result = step.result()
+    if config.method == "adam" and config.polish_iterations > 0:
+        result = polished(loaded, result, frame, config, rng, settings, length)
+    return result
+
+
+def polished(loaded: LoadedModel, result: StepResult, frame: PreparedFrame, config: OptimizerConfig,
+             rng: np.random.Generator, settings: RenderSettings, length: float) -> StepResult:
+    """``result`` with its best candidate moved by ``config.polish_iterations`` Adam iterations of its own on the
+    colour loss alone, ``config.polish_pixels`` fresh pixels each; the other candidates and every loss as they
+    were (the best stays first in the ranking)."""
+    if not bool(torch.isfinite(result.losses).any()):
+        return result
+    best = int(torch.argmin(result.losses))
+    sampler = copy.copy(frame.sampler)
+    sampler.count = config.polish_pixels
+    colour_only = replace(config, silhouette_weight=0.0, lr=config.polish_lr, iterations=config.polish_iterations,
+                          patience=None, prune_every=None)
+    step = CandidateStep(loaded, result.c2w[best][None], replace(frame, sampler=sampler, silhouette=None),
+                         colour_only, 1, settings, length)
+    for _ in range(config.polish_iterations):
+        step.iterate(rng)
+        if step.stopped:
+            return result
+    c2w = result.c2w.clone()
+    c2w[best] = step.poses(step.average if config.averaging > 0 else None).detach()[0]
+    return replace(result, c2w=c2w)
 
 
 def iterations_per_step(config: OptimizerConfig) -> int:

@@ -149,6 +149,9 @@ INVERT_RULES: dict[str, Rule] = {
     "optimizer.min-improvement": number(at_least=0, below=1),  # 1 would ask for a loss of 0
     "optimizer.prune-every": whole(1),
     "optimizer.prune-ratio": number(at_least=1),  # below 1 even the best candidate is far above the best
+    "optimizer.polish-iterations": whole(0),  # 0: off
+    "optimizer.polish-pixels": whole(1),
+    "optimizer.polish-lr": number(above=0),
     "monte-carlo.keep": several(whole(1)),
     "monte-carlo.keep-fraction": number(above=0, at_most=1),
     "monte-carlo.spawn": whole(0),  # 0: the kept candidates go on alone
@@ -249,6 +252,10 @@ def validate(config: "InvertConfig", where: str | None = None) -> None:
         option = _option("optimizer.colour-weight", where)
         raise SettingsError(f"{option} must be above 0 when the ranking's silhouette weight is 0 (every candidate "
                             "would rank the same): give --optimizer.rank-silhouette-weight too")
+    if optimizer.colour_weight == 0 and optimizer.polish_iterations > 0:
+        option = _option("optimizer.polish-iterations", where)
+        raise SettingsError(f"{option} polishes on the colour loss, which --optimizer.colour-weight 0 turns off: "
+                            "give a colour weight above 0, or leave the polish off (0)")
     if optimizer.method == "gauss-newton":
         name = _option("optimizer.method", where)
         if optimizer.loss != "mse" or optimizer.silhouette_weight > 0 or optimizer.colour_weight != 1:
@@ -258,3 +265,6 @@ def validate(config: "InvertConfig", where: str | None = None) -> None:
         if optimizer.appearance == "candidate-gain-bias":
             raise SettingsError(f"{name} gauss-newton compares one mapping of the frame for all candidates: use "
                                 "--optimizer.appearance gain-bias or as-observed with it, or --optimizer.method adam")
+        if optimizer.polish_iterations > 0:
+            raise SettingsError(f"{name} gauss-newton takes no polishing Adam iterations: leave "
+                                "--optimizer.polish-iterations 0, or use --optimizer.method adam")
