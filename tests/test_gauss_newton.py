@@ -118,7 +118,7 @@ def test_coarse_to_fine_brings_starts_8_degrees_off_in_and_does_not_leave_the_tr
 
 def test_gauss_newton_refuses_a_loss_it_does_not_fit():
     for change in ({"loss": "huber"}, {"silhouette_weight": 0.5}, {"colour_weight": 0.5},
-                   {"appearance": "candidate-gain-bias"}, {"polish_iterations": 20}):
+                   {"appearance": "candidate-gain-bias"}):
         config = InvertConfig(optimizer=dataclasses.replace(GAUSS_NEWTON, **change))
         with pytest.raises(SettingsError, match="gauss-newton"):
             validate(config)

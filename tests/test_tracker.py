@@ -247,7 +247,7 @@ def test_adams_translation_steps_are_in_units_of_the_length_given(toy_sequence, 
     for the turn, ``length`` model units for the translation. With the object's radius as the length, the
     step sizes no longer depend on the scale the dataparser gave the scene."""
     loaded, centre, start, prepared = _first_frame_step(toy_sequence, 2, seed=7)
-    config = OptimizerConfig(iterations=1, lr=0.01)
+    config = OptimizerConfig(iterations=1, lr=0.01, polish_iterations=0)
     result = optimize_candidates(loaded, start, prepared, config, np.random.default_rng(0), length=length)
     to_centre, from_centre = centred(centre)
     screw = log_se3(from_centre @ result.c2w @ torch.linalg.inv(start) @ to_centre)  # [2, 6]: (w, v)
@@ -260,8 +260,10 @@ def test_averaging_ends_the_step_at_the_moving_average_of_the_iterates(toy_seque
     final poses are the exponential moving average of the iterates' screw coordinates, computed here by
     hand from the iterates of the same step without averaging."""
     loaded, centre, start, prepared = _first_frame_step(toy_sequence, 3, seed=3)
-    plain = optimize_candidates(loaded, start, prepared, OptimizerConfig(iterations=4), np.random.default_rng(1))
-    averaged = optimize_candidates(loaded, start, prepared, OptimizerConfig(iterations=4, averaging=0.5),
+    plain = optimize_candidates(loaded, start, prepared, OptimizerConfig(iterations=4, polish_iterations=0),
+                                np.random.default_rng(1))
+    averaged = optimize_candidates(loaded, start, prepared,
+                                   OptimizerConfig(iterations=4, averaging=0.5, polish_iterations=0),
                                    np.random.default_rng(1))
     for a, b in zip(plain.history, averaged.history):
         assert np.array_equal(a.loss, b.loss) and np.array_equal(a.c2w, b.c2w)
@@ -302,7 +304,7 @@ def test_pruning_stops_far_candidates_and_patience_ends_a_step_early(toy_sequenc
 @pytest.mark.parametrize("sample_region", ["object", "image"])
 def test_the_sample_region_decides_where_each_iterations_pixels_are_drawn(toy_sequence, monkeypatch, sample_region):
     """With sample_region object every iteration draws its pixels in the frame's object region (as the
-    ranking pixels always do); with image, anywhere."""
+    ranking pixels always do), and so does the polish after the ranking; with image, anywhere."""
     loaded, frames, centre = toy_sequence
     frame = dataclasses.replace(frames[0])
     height, width = frame.image.shape[:2]
@@ -322,13 +324,15 @@ def test_the_sample_region_decides_where_each_iterations_pixels_are_drawn(toy_se
                       sampling="random", pixels=64, eval_pixels=128, sample_region=sample_region)
     tracker.run([frame], start)
     inside = [frame.object_region[p[:, 0], p[:, 1]] for p in drawn]
-    ranking, iterations = inside[0], inside[1:]  # the ranking pixels are drawn first, then one set an iteration
-    assert len(iterations) == 4 and ranking.all() and len(ranking) == 128
-    assert all(len(i) == 64 for i in iterations)
-    if sample_region == "object":
-        assert all(i.all() for i in iterations)
+    # the ranking pixels are drawn first, then one set an iteration, then one a polishing iteration
+    ranking, iterations, polish = inside[0], inside[1:5], inside[5:]
+    assert ranking.all() and len(ranking) == 128
+    assert all(len(i) == 64 for i in iterations) and len(polish) == OptimizerConfig().polish_iterations
+    if sample_region == "object":  # the region's 600 pixels are fewer than the polish's 1,024: all of them
+        assert all(i.all() for i in iterations) and all(i.all() and len(i) == 600 for i in polish)
     else:  # the region is 600 of 4,000 pixels: uniform draws over the image fall outside it
-        assert not any(i.all() for i in iterations)
+        assert not any(i.all() for i in iterations) and not any(i.all() for i in polish)
+        assert all(len(i) == 1024 for i in polish)
 
 
 def test_the_silhouette_weight_follows_the_last_outline_loss_under_a_trust_level(toy_sequence):
@@ -375,7 +379,7 @@ def test_polishing_moves_the_best_candidate_alone_nearer_the_truth(toy_sequence)
     sampler = PixelSampler("random", 64).prepare(frame.image)
     eval_pixels = torch.as_tensor(PixelSampler("random", 256).prepare(frame.image).sample(np.random.default_rng(0)))
     prepared = PreparedFrame.from_image(loaded, frame.image, frame.intrinsics, sampler, eval_pixels, centre)
-    plain_config = OptimizerConfig(iterations=2)
+    plain_config = OptimizerConfig(iterations=2, polish_iterations=0)
     plain = optimize_candidates(loaded, start, prepared, plain_config, np.random.default_rng(2))
     config = dataclasses.replace(plain_config, polish_iterations=40)
     polished = optimize_candidates(loaded, start, prepared, config, np.random.default_rng(2))

@@ -97,7 +97,7 @@ def test_zero_and_minus_one_pass_where_they_mean_something(option, value):
     assert _value(config, option) == value  # and the value validated was really the option's
 
 
-def test_the_colour_weight_may_be_0_only_with_both_silhouette_weights_and_no_polish():
+def test_the_colour_weight_may_be_0_only_with_both_silhouette_weights():
     base = InvertConfig()
     alone = replace(base, optimizer=replace(base.optimizer, colour_weight=0.0, silhouette_weight=1.0))
     validate(alone)  # the ranking's weight, unset, follows the optimization's
@@ -106,9 +106,6 @@ def test_the_colour_weight_may_be_0_only_with_both_silhouette_weights_and_no_pol
         validate(replace(alone, optimizer=replace(alone.optimizer, silhouette_weight=0.0)))
     with pytest.raises(SettingsError, match="when the ranking's silhouette weight is 0"):
         validate(replace(alone, optimizer=replace(alone.optimizer, rank_silhouette_weight=0.0)))
-    with pytest.raises(SettingsError, match="polishes on the colour loss"):
-        validate(replace(alone, optimizer=replace(alone.optimizer, polish_iterations=20)))
-    validate(replace(base, optimizer=replace(base.optimizer, polish_iterations=20)))
 
 
 @pytest.mark.parametrize("option", [o for o, hint in numeric_options(InvertConfig).items() if _inner(hint) != hint])

@@ -252,10 +252,6 @@ def validate(config: "InvertConfig", where: str | None = None) -> None:
         option = _option("optimizer.colour-weight", where)
         raise SettingsError(f"{option} must be above 0 when the ranking's silhouette weight is 0 (every candidate "
                             "would rank the same): give --optimizer.rank-silhouette-weight too")
-    if optimizer.colour_weight == 0 and optimizer.polish_iterations > 0:
-        option = _option("optimizer.polish-iterations", where)
-        raise SettingsError(f"{option} polishes on the colour loss, which --optimizer.colour-weight 0 turns off: "
-                            "give a colour weight above 0, or leave the polish off (0)")
     if optimizer.method == "gauss-newton":
         name = _option("optimizer.method", where)
         if optimizer.loss != "mse" or optimizer.silhouette_weight > 0 or optimizer.colour_weight != 1:
@@ -265,6 +261,3 @@ def validate(config: "InvertConfig", where: str | None = None) -> None:
         if optimizer.appearance == "candidate-gain-bias":
             raise SettingsError(f"{name} gauss-newton compares one mapping of the frame for all candidates: use "
                                 "--optimizer.appearance gain-bias or as-observed with it, or --optimizer.method adam")
-        if optimizer.polish_iterations > 0:
-            raise SettingsError(f"{name} gauss-newton takes no polishing Adam iterations: leave "
-                                "--optimizer.polish-iterations 0, or use --optimizer.method adam")
