@@ -391,11 +391,15 @@ class CandidateStep:
         if config.patience is not None and self._stalled >= config.patience:
             self.stopped = True
 
+    def final_poses(self) -> Tensor:
+        """Where the step ends [N, 4, 4]: the averaged iterates with ``config.averaging``, else the last."""
+        return self.poses(self.average if self.config.averaging > 0 else None).detach()
+
     def result(self) -> StepResult:
         """The final poses (the averaged iterates with ``config.averaging``) ranked on the frame's evaluation
         pixels."""
-        final = self.poses(self.average if self.config.averaging > 0 else None).detach()
-        return rank(self.loaded, final, self.alive, self.active, self.frame, self.config, self.settings, self.history)
+        return rank(self.loaded, self.final_poses(), self.alive, self.active, self.frame, self.config, self.settings,
+                    self.history)
 
 
 def rank(loaded: LoadedModel, final: Tensor, alive: Tensor, active: Tensor, frame: PreparedFrame,
@@ -478,7 +482,7 @@ def polished(loaded: LoadedModel, result: StepResult, frame: PreparedFrame, conf
         if step.stopped:
             return result
     c2w = result.c2w.clone()
-    c2w[best] = step.poses(step.average if config.averaging > 0 else None).detach()[0]
+    c2w[best] = step.final_poses()[0]
     return replace(result, c2w=c2w)
 
 
