@@ -135,6 +135,27 @@ def test_object_radius_is_not_inflated_by_a_fog_of_specks_touching_the_object(to
     assert abs(object_radius(toy_model, centre) - clean) < 0.1 * clean, clean
 
 
+def test_a_dense_speck_by_the_centre_of_a_hollow_object_is_not_taken_for_it(toy_model, monkeypatch):
+    """The occupied cell nearest the centre may be a speck apart from the object (measured: a user's-path
+    spacecraft whose fine pass at 8x the threshold took such a one-cell speck for the object, 0.015 of its
+    0.175 model units, and whose view bank then saw nothing). Here the toy is emptied within half its radius
+    and a speck far denser than every threshold, a tenth of its radius, put at the centre: the radius must stay
+    the toy's."""
+    centre = torch.as_tensor(toy_model.point_to_model(TOY_CENTRE), dtype=torch.float32)
+    clean = object_radius(toy_model, centre)
+    field = extent.density_field(toy_model)
+    dense = 100.0 * extent.base_density(float(toy_model.model.scene_box.aabb.abs().max()))
+
+    def hollow_with_speck(points: torch.Tensor) -> torch.Tensor:
+        distance = (points - centre).norm(dim=-1)
+        inside = (distance < 0.5 * clean / extent.MARGIN).reshape(*points.shape[:-1], 1)
+        speck = (distance < 0.1 * clean).reshape(*points.shape[:-1], 1)
+        return torch.where(inside, dense * speck, field.density_fn(points))
+
+    monkeypatch.setattr(extent, "density_field", lambda loaded: SimpleNamespace(density_fn=hollow_with_speck))
+    assert abs(object_radius(toy_model, centre) - clean) < 0.1 * clean, clean
+
+
 def test_a_thin_diagonal_boom_counts_as_part_of_the_object(toy_model, monkeypatch):
     """A boom thinner than a grid cell running diagonally through the grid occupies a chain of cells that
     touch only at their corners (measured: a fine pass that joined cells by their faces alone cut a user's-path

@@ -6,11 +6,13 @@ so it must come from the model, not from a preset: a fixed bound cuts a larger o
 of a density grid: a coarse one over the model's scene box, then a fine one about what the coarse pass
 found. Occupied cells are those with the density at which a ray loses a tenth of its light across a
 coarse cell (one threshold for both passes: measured per fine cell, a model trained on RGB images kept
-only its dense core, 0.29 m of a 0.8 m spacecraft); only the occupied region connected to the cells
-nearest the centre counts, so floaters near the training cameras do not inflate the radius. Cells that
-touch at an edge or a corner are connected: a boom or a panel edge that runs diagonally through the grid
-is one thin chain of such cells, and with face contacts alone a fine pass cut one user's-path spacecraft
-to its 0.17 m core.
+only its dense core, 0.29 m of a 0.8 m spacecraft); only the largest connected occupied region counts, so
+floaters near the training cameras do not inflate the radius. Not the region nearest the centre: on one
+user's-path spacecraft the cell nearest the centre was, at 8x the threshold, a lone speck apart from the
+object, and the fine pass took it for the object (0.015 model units of 0.175; the view bank then framed
+nothing). Cells that touch at an edge or a corner are connected: a boom or a panel edge that runs
+diagonally through the grid is one thin chain of such cells, and with face contacts alone a fine pass cut
+one user's-path spacecraft to its 0.17 m core.
 
 A model trained on RGB images over black may also fill the space about the object with a thin dark fog
 whose densest specks, above that threshold, touch one another and the object by chance: one such
@@ -82,14 +84,14 @@ class DensityGrid:
         return cls(density.reshape(shape).cpu().numpy(), distance, float(axis[1] - axis[0]))
 
     def occupied_radius(self, min_density: float) -> float | None:
-        """Radius of the cells at least ``min_density`` dense connected to the centre; ``None`` when no cell
-        is occupied."""
+        """Radius of the largest connected region of cells at least ``min_density`` dense; ``None`` when no
+        cell is occupied."""
         occupied = self.density >= min_density
         if not occupied.any():
             return None
         labels, _ = ndimage.label(occupied, TOUCHING)
-        nearest = labels[occupied][np.argmin(self.distance[occupied])]
-        return float(self.distance[labels == nearest].max()) + 0.5 * np.sqrt(3.0) * self.cell
+        largest = 1 + int(np.argmax(np.bincount(labels[occupied])[1:]))
+        return float(self.distance[labels == largest].max()) + 0.5 * np.sqrt(3.0) * self.cell
 
 
 def object_radius(loaded: LoadedModel, centre: Tensor) -> float:
