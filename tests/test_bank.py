@@ -99,7 +99,7 @@ def toy_model(toy_run):
 
 @pytest.fixture(scope="module")
 def bounded(toy_model):
-    """How ns-invert renders the fixture model (rays bounded to the object, (8, 4) / 8 samples)."""
+    """How ns-invert renders the fixture model (rays bounded to the object, (16, 8) / 16 samples)."""
     centre = torch.as_tensor(toy_model.point_to_model(TOY_CENTRE), dtype=torch.float32)
     return bound_rays(toy_model, centre, RenderConfig(target_radius_m=RADIUS_M))[0]
 

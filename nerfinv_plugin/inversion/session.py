@@ -46,10 +46,13 @@ from nerfinv_plugin.results.summary import summarize
 T = TypeVar("T")
 R = TypeVar("R")
 
-BOUNDED_PROPOSAL_SAMPLES = (8, 4)
-"""Samples per proposal level when rays are bounded to the object (docs/benchmarks.md: the same inversion
-errors as the trained (64, 32) in three seeds, at a sixth of the cost)."""
-BOUNDED_NERF_SAMPLES = 8
+BOUNDED_PROPOSAL_SAMPLES = (16, 8)
+"""Samples per proposal level when rays are bounded to the object. nerfacto-tiny's default training
+(2,000 iterations) learns an outline that (8, 4) / 8 samples blur: (16, 8) / 16 renders it within 0.002 of the
+trained (64, 32) / 24 in the silhouette term, at a third of their cost (docs/benchmarks.md, sessions 29-31).
+A model trained for fewer iterations is softer and does better with ``--render.proposal-samples 8 4
+--render.nerf-samples 8`` (docs/nerfacto-tiny.md)."""
+BOUNDED_NERF_SAMPLES = 16
 RANK_MARGIN = 0.25
 """With ``--rank-region object``, candidates are ranked on pixels of the object's box widened by this
 fraction of its size on every side: a candidate that puts the object beside it is still seen."""

@@ -69,10 +69,10 @@ class RenderConfig:
     """Radius of that sphere (dataset metres). Unset: read off the model's density (the object's extent
     about --target, widened by 10%)."""
     proposal_samples: tuple[int, ...] | None = None
-    """Samples per ray of each proposal level (nerfacto's two levels: 64 32 when trained). Unset: 8 4 when
+    """Samples per ray of each proposal level (nerfacto's two levels: 64 32 when trained). Unset: 16 8 when
     rays are bounded and the model has two proposal levels, as trained otherwise."""
     nerf_samples: int | None = None
-    """Samples per ray of the final field (nerfacto: 48, nerfacto-tiny: 24 when trained). Unset: 8 when rays
+    """Samples per ray of the final field (nerfacto: 48, nerfacto-tiny: 24 when trained). Unset: 16 when rays
     are bounded and the model samples with proposals, as trained otherwise."""
 
 

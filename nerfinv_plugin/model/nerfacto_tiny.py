@@ -269,7 +269,9 @@ def _adam(lr: float, max_steps: int) -> dict:
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=lr / 20, max_steps=max_steps)}
 
 
-MAX_ITERATIONS = 1100
+MAX_ITERATIONS = 2000
+"""About 3.7 minutes on 2 CPU cores; 1,100 iterations gave a softer outline that more samples per ray did not
+sharpen, and fewer runs under 2 degrees (docs/benchmarks.md, sessions 29-31)."""
 
 nerfacto_tiny = MethodSpecification(
     config=TrainerConfig(
