@@ -49,8 +49,8 @@ R = TypeVar("R")
 BOUNDED_PROPOSAL_SAMPLES = (16, 8)
 """Samples per proposal level when rays are bounded to the object. nerfacto-tiny's default training
 (2,000 iterations) learns an outline that (8, 4) / 8 samples blur: (16, 8) / 16 renders it within 0.002 of the
-trained (64, 32) / 24 in the silhouette term, at a third of their cost (docs/benchmarks.md, sessions 29-31).
-A model trained for fewer iterations is softer and does better with ``--render.proposal-samples 8 4
+trained (64, 32) / 24 in the silhouette term, at a fraction of their cost (docs/benchmarks.md, sessions
+29-31). A model trained for fewer iterations is softer and does better with ``--render.proposal-samples 8 4
 --render.nerf-samples 8`` (docs/nerfacto-tiny.md)."""
 BOUNDED_NERF_SAMPLES = 16
 RANK_MARGIN = 0.25
