@@ -12,6 +12,7 @@ from pathlib import Path
 from nerfinv_plugin.inversion.optimizer import OptimizerConfig
 from nerfinv_plugin.inversion.settings import InvertConfig, RenderConfig, StartConfig
 from nerfinv_plugin.model.loading import Device
+from nerfinv_plugin.model.nerfacto_tiny import MAX_ITERATIONS
 from nerfinv_plugin.results.folder import SUMMARY
 from nerfinv_plugin.synth.datasets import (
     TrainingSetSpec,
@@ -36,7 +37,7 @@ class DemoSettings:
     """Root of the trained model's and the inversion's run folders."""
     frames: int = 8
     """Frames of the roe1 trajectory (the target spins 4 degrees between frames)."""
-    training_iterations: int = 2000
+    training_iterations: int = MAX_ITERATIONS
     """nerfacto-tiny iterations of 512 rays, its default (about 3.7 minutes on 2 cores)."""
     iterations: int = 60
     """Gradient iterations per Monte Carlo step of the inversion (the thesis' 60)."""
