@@ -38,7 +38,7 @@ class DemoSettings:
     frames: int = 8
     """Frames of the roe1 trajectory (the target spins 4 degrees between frames)."""
     training_iterations: int = MAX_ITERATIONS
-    """nerfacto-tiny iterations of 512 rays, its default (about 3.7 minutes on 2 cores)."""
+    """nerfacto-tiny iterations of 512 rays, its default (3.6-5.3 minutes on 2 cores, by the VM)."""
     iterations: int = 60
     """Gradient iterations per Monte Carlo step of the inversion (the thesis' 60)."""
     device: Device = "auto"
