@@ -270,9 +270,8 @@ def _adam(lr: float, max_steps: int) -> dict:
 
 
 MAX_ITERATIONS = 2000
-"""3.6-3.8 minutes on 2 CPU cores, 4.9-5.3 on a VM 1.46x slower on the same job; 1,100 iterations gave a
-softer outline that more samples per ray did not sharpen, and fewer runs under 2 degrees (docs/benchmarks.md,
-sessions 29-32)."""
+"""About 3.7 minutes on 2 CPU cores; 1,100 iterations gave a softer outline that more samples per ray did not
+sharpen, and fewer runs under 2 degrees (docs/benchmarks.md, sessions 29-31)."""
 
 nerfacto_tiny = MethodSpecification(
     config=TrainerConfig(
