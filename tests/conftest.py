@@ -32,7 +32,7 @@ with its defaults: the way users train."""
 
 TRAINING_SOURCES = ("synth/scenes.py", "synth/render.py", "synth/trajectories.py", "synth/datasets.py",
                     "synth/camera_images.py", "geometry/frames.py", "model/nerfacto_tiny.py", "model/fused_hash.py",
-                    "model/training.py")
+                    "model/training.py", "model/opacity.py", "initialization/detect.py")
 """The code whose behaviour determines the trained fixture (rendering the data and training on it)."""
 
 

@@ -20,6 +20,7 @@ from nerfinv_plugin.model.nerfacto_tiny import (
     NerfactoTinyModelConfig,
     lpips_disabled,
 )
+from nerfinv_plugin.model.opacity import EMPTY, OBJECT, UNKNOWN, opacity_label_stack, opacity_labels
 from nerfinv_plugin.model.training import train_nerfacto_tiny
 from nerfinv_plugin.synth.datasets import TrainingSetSpec, write_training_set
 
@@ -123,3 +124,51 @@ def test_densities_follow_the_scene_scale_and_old_checkpoints_keep_theirs():
     before = _tiny_model(seed=2)
     before.load_state_dict(old)
     assert all(f.average_init_density == pytest.approx(0.01) for f in (before.field, *before.proposal_networks))
+
+
+def test_opacity_labels_are_the_found_object_less_its_outline_and_what_lies_well_away_from_it():
+    image = np.zeros((40, 60, 3))
+    image[10:22, 20:40] = (0.1, 0.6, 0.3)  # a lit box over black space
+    expected = np.full((40, 60), EMPTY, np.int8)
+    expected[8:24, 18:42] = UNKNOWN  # within two pixels of the box
+    expected[11:21, 21:39] = OBJECT  # inside it, off its outline
+    np.testing.assert_array_equal(opacity_labels(image), expected)
+    assert (opacity_labels(np.zeros((40, 60, 3))) == UNKNOWN).all()  # nothing found: nothing is asked
+    stack = opacity_label_stack([image, np.zeros((30, 70, 3))])
+    assert stack.shape == (2, 40, 70) and stack.dtype == torch.int8
+    np.testing.assert_array_equal(stack[0, :, :60].numpy(), expected)
+    assert (stack[0, :, 60:] == UNKNOWN).all()
+
+
+def test_the_opacity_loss_asks_for_accumulation_one_on_the_object_and_zero_away_from_it_in_rgb_images_only():
+    from nerfstudio.cameras.cameras import Cameras
+
+    model = _tiny_model().train()
+    model.fit_to_cameras(np.array([[0.0, 0.0, 5.0]]), 0.3)
+    c2w = torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 5]]])
+    camera = Cameras(camera_to_worlds=c2w, fx=60.0, fy=60.0, cx=16.0, cy=12.0, width=32, height=24)
+    rng = np.random.default_rng(0)
+    rows, cols = torch.as_tensor(rng.integers(0, 24, 64)), torch.as_tensor(rng.integers(0, 32, 64))
+    bundle = camera.generate_rays(camera_indices=0, coords=torch.stack([rows, cols], -1).float() + 0.5)
+    bundle.camera_indices = torch.zeros((64, 1), dtype=torch.long)
+    outputs = model(bundle)
+    labels = torch.full((2, 24, 32), UNKNOWN, dtype=torch.int8)
+    labels[1, :, :10] = EMPTY
+    labels[1, 6:18, 14:24] = OBJECT
+    batch = {"image": torch.rand(64, 3), "indices": torch.stack([torch.ones(64, dtype=torch.long), rows, cols], -1)}
+    model.opacity_labels = labels
+    metrics = model.get_metrics_dict(outputs, batch)
+    loss = model.get_loss_dict(outputs, batch, metrics)["object_opacity_loss"]
+    ray_labels = labels[1, rows, cols]
+    assert all(0 < int((ray_labels == label).sum()) < 64 for label in (OBJECT, EMPTY, UNKNOWN))
+    accumulation = outputs["accumulation"].squeeze(-1)
+    expected = model.config.object_opacity_loss_mult * torch.where(
+        ray_labels == OBJECT, (1.0 - accumulation) ** 2, torch.where(ray_labels == EMPTY, accumulation**2, 0.0)).mean()
+    torch.testing.assert_close(loss, expected)
+    loss.backward()  # it trains the field
+    assert any(p.grad is not None and p.grad.abs().max() > 0 for p in model.field.parameters())
+    model.opacity_labels = None  # RGBA images: the random background teaches opacity
+    assert "object_opacity_loss" not in model.get_loss_dict(outputs, dict(batch, image=torch.rand(64, 4)), metrics)
+    model.opacity_labels = labels
+    model.eval()  # nerfstudio's evaluation batches index the evaluation images
+    assert "object_opacity_loss" not in model.get_loss_dict(outputs, batch, metrics)

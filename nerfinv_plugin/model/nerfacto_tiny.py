@@ -11,7 +11,9 @@ machine without internet needs:
   that scale (so that the model learns the same scene whatever scale the dataparser gives it: metres for
   blender-data, a unit cube of cameras for nerfstudio-data), kept in the checkpoint;
 - a random background behind RGBA training images and black behind RGB ones (a random background behind
-  an image without alpha can only be matched by filling space with black: the model then renders nothing);
+  an image without alpha can only be matched by filling space with black: the model then renders nothing),
+  with the pixels of RGB images that surely show the object taught to be opaque and those well away from it
+  to be empty;
 - the camera optimizer off so that the model frame stays the ground-truth frame, and evaluation/viewer
   settings that never block or render full images often.
 
@@ -138,6 +140,10 @@ class NerfactoTinyModel(NerfactoModel):
     contraction fitted to the training cameras, and a background that suits the training images."""
 
     config: "NerfactoTinyModelConfig"
+    opacity_labels: Tensor | None = None
+    """[N, H, W] int8: where each RGB training image surely shows the object and surely shows empty space
+    (``opacity`` module), set by the pipeline; ``None`` for RGBA images, whose random background teaches
+    opacity."""
 
     def populate_modules(self) -> None:
         with lpips_disabled():
@@ -177,7 +183,15 @@ class NerfactoTinyModel(NerfactoModel):
 
     def get_loss_dict(self, outputs: dict, batch: dict, metrics_dict: dict | None = None) -> dict:
         with _black_behind_rgb(self, batch["image"]):
-            return super().get_loss_dict(outputs, batch, metrics_dict)
+            loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if self.training and self.opacity_labels is not None and self.config.object_opacity_loss_mult > 0:
+            from nerfinv_plugin.model.opacity import opacity_loss
+
+            image, row, column = batch["indices"].to(self.opacity_labels.device).long().unbind(-1)
+            labels = self.opacity_labels[image, row, column].to(outputs["accumulation"].device)
+            loss_dict["object_opacity_loss"] = self.config.object_opacity_loss_mult * opacity_loss(
+                labels, outputs["accumulation"].squeeze(-1))
+        return loss_dict
 
     def get_metrics_dict(self, outputs: dict, batch: dict) -> dict:
         with _black_behind_rgb(self, batch["image"]):
@@ -200,10 +214,10 @@ def _black_behind_rgb(model: NerfactoModel, image: Tensor) -> Iterator[None]:
 
 class NerfactoTinyPipeline(VanillaPipeline):
     """nerfstudio's pipeline, which also fits nerfacto-tiny's planes and contraction to the training
-    cameras once they are loaded."""
+    cameras once they are loaded and, for training on RGB images, labels their pixels for the opacity loss."""
 
-    def __init__(self, config: VanillaPipelineConfig, device: str, *args, **kwargs) -> None:
-        super().__init__(config, device, *args, **kwargs)
+    def __init__(self, config: VanillaPipelineConfig, device: str, test_mode: str = "val", *args, **kwargs) -> None:
+        super().__init__(config, device, test_mode, *args, **kwargs)
         model = self._model
         if isinstance(model, NerfactoTinyModel) and self.datamanager.train_dataset is not None:
             cameras = self.datamanager.train_dataset.cameras
@@ -213,6 +227,18 @@ class NerfactoTinyPipeline(VanillaPipeline):
             fit = model.fit_to_cameras(centres, float(half.min()))
             CONSOLE.print(f"nerfacto-tiny: near {fit.near:.3f}, far {fit.far:.3f}, contraction unit {fit.unit:.3f} "
                           f"(model units, from {len(centres)} training cameras)")
+            dataset = self.datamanager.train_dataset
+            over_black = model.config.background_color in ("random", "black")  # the detector's dark background
+            training = test_mode == "val"  # ns-train's; ns-eval and ns-viewer load for testing
+            if (training and model.config.object_opacity_loss_mult > 0 and over_black
+                    and dataset.get_image_float32(0).shape[-1] == 3):
+                from nerfinv_plugin.model.opacity import OBJECT, opacity_label_stack  # OpenCV: only for RGB
+
+                model.opacity_labels = opacity_label_stack(
+                    dataset.get_image_float32(i).numpy() for i in range(len(dataset)))
+                share = float((model.opacity_labels == OBJECT).float().mean())
+                CONSOLE.print(f"nerfacto-tiny: RGB training images; {share:.1%} of their pixels surely show the "
+                              "object and are taught to be opaque, those well away from it to be empty")
 
 
 @dataclass
@@ -260,6 +286,13 @@ class NerfactoTinyModelConfig(NerfactoModelConfig):
     average_init_density: float = 0.01
     """Scale of the fields' densities, per contraction unit (nerfacto: per model unit), so that a scene
     gets the same opacities at any scale the dataparser puts it at."""
+    object_opacity_loss_mult: float = 0.3
+    """Weight of the loss that makes the pixels of RGB training images that surely show the object opaque
+    and those well away from it empty (the object as ``ns-invert`` finds it in a frame): over black, which RGB
+    images of an object in space need behind them, a half-transparent surface looks like an opaque one of
+    mixed colour, and black fog like empty space.
+    Unused for RGBA images, whose random background teaches opacity, and with a ``last_sample`` or ``white``
+    background (an object that is not over black). 0 turns it off."""
     eval_num_rays_per_chunk: int = 4096
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
 
