@@ -22,6 +22,7 @@ so it must stay light and must never raise.
 """
 
 import contextlib
+import itertools
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -230,12 +231,13 @@ class NerfactoTinyPipeline(VanillaPipeline):
             dataset = self.datamanager.train_dataset
             over_black = model.config.background_color in ("random", "black")  # the detector's dark background
             training = test_mode == "val"  # ns-train's; ns-eval and ns-viewer load for testing
-            if (training and model.config.object_opacity_loss_mult > 0 and over_black
-                    and dataset.get_image_float32(0).shape[-1] == 3):
+            wanted = training and over_black and model.config.object_opacity_loss_mult > 0
+            first = dataset.get_image_float32(0).numpy() if wanted else None
+            if first is not None and first.shape[-1] == 3:
                 from nerfinv_plugin.model.opacity import OBJECT, opacity_label_stack  # OpenCV: only for RGB
 
-                model.opacity_labels = opacity_label_stack(
-                    dataset.get_image_float32(i).numpy() for i in range(len(dataset)))
+                rest = (dataset.get_image_float32(i).numpy() for i in range(1, len(dataset)))
+                model.opacity_labels = opacity_label_stack(itertools.chain([first], rest))
                 share = float((model.opacity_labels == OBJECT).float().mean())
                 CONSOLE.print(f"nerfacto-tiny: RGB training images; {share:.1%} of their pixels surely show the "
                               "object and are taught to be opaque, those well away from it to be empty")

@@ -36,7 +36,7 @@ def opacity_labels(image: np.ndarray) -> np.ndarray:
     EMPTY more than two pixels from it, UNKNOWN between; all UNKNOWN when no object is found (such a frame
     cannot say where the object is not: it may be cut off, or too dark to find)."""
     labels = np.full(image.shape[:2], UNKNOWN, np.int8)
-    detection = find_object(np.clip(np.round(image * 255.0), 0, 255).astype(np.uint8))
+    detection = find_object(image)
     if detection is None:
         return labels
     mask = detection.mask.astype(np.uint8)
