@@ -13,7 +13,7 @@ from torchmetrics.image import lpip
 
 from nerfinv_plugin.model.evaluate import evaluate_split, psnr
 from nerfinv_plugin.model.fused_hash import fused_hash_forward
-from nerfinv_plugin.model.loading import load_model
+from nerfinv_plugin.model.loading import load_model, read_config
 from nerfinv_plugin.model.nerfacto_tiny import (
     LPIPSUnavailable,
     NerfactoTinyModel,
@@ -172,3 +172,30 @@ def test_the_opacity_loss_asks_for_accumulation_one_on_the_object_and_zero_away_
     model.opacity_labels = labels
     model.eval()  # nerfstudio's evaluation batches index the evaluation images
     assert "object_opacity_loss" not in model.get_loss_dict(outputs, batch, metrics)
+
+
+@pytest.mark.parametrize("test_mode,background,labelled", [("val", "random", True), ("test", "random", False),
+                                                           ("val", "white", False)])
+def test_the_pipeline_labels_rgb_training_images_only_when_training_over_a_dark_background(
+        toy_rgb_run, test_mode, background, labelled):
+    config = read_config(toy_rgb_run[0]).pipeline  # nerfstudio-data on RGB images, as users train
+    config.model.background_color = background
+    pipeline = config.setup(device="cpu", test_mode=test_mode)  # ns-train's "val"; ns-eval / ns-viewer load "test"
+    labels = pipeline.model.opacity_labels
+    if not labelled:
+        assert labels is None
+        return
+    dataset = pipeline.datamanager.train_dataset
+    assert labels.shape[0] == len(dataset)
+    for index in (0, 1, len(dataset) - 1):  # the first image is read apart from the others: neither lost nor repeated
+        image = dataset.get_image_float32(index).numpy()
+        height, width = image.shape[:2]
+        np.testing.assert_array_equal(labels[index, :height, :width].numpy(), opacity_labels(image))
+    assert 0 < float((labels == OBJECT).float().mean()) < 0.5
+
+
+def test_the_pipeline_leaves_rgba_training_images_to_the_random_background(toy_run):
+    config = read_config(toy_run[0]).pipeline  # the Blender dataparser, alpha kept
+    pipeline = config.setup(device="cpu", test_mode="val")
+    assert pipeline.datamanager.train_dataset.get_image_float32(0).shape[-1] == 4
+    assert pipeline.model.opacity_labels is None
